@@ -20,9 +20,11 @@ import sys
 COMMAND_MODULES = [
     "common.qp_cli",            # sage bench qp
     "common.env.cli",           # sage env render, sage bench env
-    "services.cli",             # sage train, sage bench system, sage service ...
-    "common.algos.cli",         # sage eval, sage suite, sage report, sage bench learner
+    "services.cli",             # sage train (in-process), service entry points
+    "common.algos.cli",         # sage bench learner
+    "common.suite_cli",         # sage eval, sage suite, sage report
     "common.audit.cli",         # sage tree, sage trace, sage audit, sage export-bundle
+    "deploy.cli",               # sage up (supervisor), sage bench system
 ]
 
 
