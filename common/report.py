@@ -1,0 +1,269 @@
+"""Table I and the evaluation figures of Sec. IV from suite results.
+
+A suite result is one JSON file per (method, scenario, seed) run, written by
+`sage suite` (schema in ``RESULT_KEYS`` below). This module only reads those
+files: every number in the table and the figures comes from a real run.
+
+Aggregation follows the paper: per-scenario cells are the mean over seeds,
+family rows are the mean of their scenarios, and the overall row is the mean
+± standard deviation across runs (each run's deployment evaluation is one
+sample).
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+
+METHODS = ["happo", "happo_cbf", "talo_cbf", "sail_cbf", "sage"]
+METHOD_TITLES = {
+    "happo": "HAPPO",
+    "happo_cbf": "HAPPO+CBF",
+    "talo_cbf": "TALO+CBF",
+    "sail_cbf": "SAIL+CBF",
+    "sage": "SAGE+CBF",
+}
+FAMILIES = {
+    "LCP": ["narrow_gate", "needle_gate", "tilt_gate"],
+    "STR": ["double_gate", "chicane", "s_corridor"],
+    "CCN": ["l_corridor", "u_corridor", "maze"],
+}
+SCENARIO_TITLES = {
+    "narrow_gate": "Narrow Gate",
+    "needle_gate": "Needle Gate",
+    "tilt_gate": "Tilt Gate",
+    "double_gate": "Double Gate",
+    "chicane": "Chicane",
+    "s_corridor": "S-Shaped Corridor",
+    "l_corridor": "L-Corridor",
+    "u_corridor": "U-Shaped Corridor",
+    "maze": "Maze",
+}
+# Keys every result's "eval" block carries (deployment evaluation).
+EVAL_KEYS = [
+    "success_rate", "return_mean", "col_per_1k", "drop_rate",
+    "proposal_violation", "correction",
+    "tilt", "heading_error", "height_error", "completion_time",
+]
+RESULT_KEYS = ["method", "scenario", "seed", "eval", "train_curve", "budget"]
+SHIELDED = {"happo": False, "happo_cbf": True, "talo_cbf": True, "sail_cbf": True, "sage": True}
+
+
+@dataclass
+class Result:
+    method: str
+    scenario: str
+    seed: int
+    eval: dict
+    train_curve: list
+    budget: dict
+
+
+def load_results(paths: Iterable[Path]) -> list[Result]:
+    """Read result JSON files; a malformed file is an error that names it."""
+    results = []
+    for path in paths:
+        path = Path(path)
+        try:
+            raw = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{path}: not valid JSON ({exc})") from exc
+        missing = [k for k in RESULT_KEYS if k not in raw]
+        if missing:
+            raise ValueError(f"{path}: result is missing keys {missing}")
+        if raw["method"] not in METHOD_TITLES:
+            raise ValueError(f"{path}: unknown method {raw['method']!r}")
+        results.append(Result(**{k: raw[k] for k in RESULT_KEYS}))
+    return results
+
+
+def _mean(values: list[float]) -> float:
+    values = [v for v in values if v is not None and not (isinstance(v, float) and math.isnan(v))]
+    return float(np.mean(values)) if values else float("nan")
+
+
+def _std(values: list[float]) -> float:
+    values = [v for v in values if v is not None and not (isinstance(v, float) and math.isnan(v))]
+    return float(np.std(values)) if len(values) > 1 else 0.0 if values else float("nan")
+
+
+def cell(results: list[Result], method: str, scenario: str, key: str) -> float:
+    return _mean([r.eval.get(key) for r in results if r.method == method and r.scenario == scenario])
+
+
+def summarize(results: list[Result]) -> dict:
+    """Nested summary: per scenario, per family, overall, for each method present."""
+    methods = [m for m in METHODS if any(r.method == m for r in results)]
+    scenarios = [s for fam in FAMILIES.values() for s in fam if any(r.scenario == s for r in results)]
+    out: dict = {"methods": methods, "scenarios": {}, "families": {}, "overall": {}}
+    for s in scenarios:
+        out["scenarios"][s] = {
+            m: {k: cell(results, m, s, k) for k in EVAL_KEYS} for m in methods
+        }
+    for fam, members in FAMILIES.items():
+        present = [s for s in members if s in out["scenarios"]]
+        if not present:
+            continue
+        out["families"][fam] = {
+            m: {k: _mean([out["scenarios"][s][m][k] for s in present]) for k in EVAL_KEYS}
+            for m in methods
+        }
+    for m in methods:
+        runs = [r for r in results if r.method == m]
+        out["overall"][m] = {
+            k: {"mean": _mean([r.eval.get(k) for r in runs]), "std": _std([r.eval.get(k) for r in runs])}
+            for k in EVAL_KEYS
+        }
+        out["overall"][m]["runs"] = len(runs)
+    return out
+
+
+def _fmt(x: float, digits: int = 1, scale: float = 1.0) -> str:
+    return "–" if x is None or math.isnan(x) else f"{x * scale:.{digits}f}"
+
+
+def table_markdown(summary: dict) -> str:
+    """Table I as Markdown: SR (%) and Col./1k per scenario, family means, overall row."""
+    methods = summary["methods"]
+    head = "| Family | Scenario | " + " | ".join(
+        f"{METHOD_TITLES[m]} SR | {METHOD_TITLES[m]} Col./1k" for m in methods) + " |"
+    sep = "|" + "---|" * (2 + 2 * len(methods))
+    lines = ["### Per scenario (SR in %, Col./1k in collision steps per 1000 env steps)", "", head, sep]
+    for fam, members in FAMILIES.items():
+        for s in members:
+            if s not in summary["scenarios"]:
+                continue
+            row = summary["scenarios"][s]
+            lines.append(f"| {fam} | {SCENARIO_TITLES[s]} | " + " | ".join(
+                f"{_fmt(row[m]['success_rate'], scale=100)} | {_fmt(row[m]['col_per_1k'])}" for m in methods) + " |")
+        if fam in summary["families"]:
+            row = summary["families"][fam]
+            lines.append(f"| {fam} | **{fam} mean** | " + " | ".join(
+                f"**{_fmt(row[m]['success_rate'], scale=100)}** | **{_fmt(row[m]['col_per_1k'])}**" for m in methods) + " |")
+    lines += ["", "### Overall (mean ± std across runs)", "",
+              "| Method | Runs | SR (%) | Return | Col./1k | DR (%) | Proposal viol. (%) | Correction |",
+              "|---|---|---|---|---|---|---|---|"]
+    for m in methods:
+        o = summary["overall"][m]
+
+        def pm(key, scale=1.0, digits=1):
+            return f"{_fmt(o[key]['mean'], digits, scale)} ± {_fmt(o[key]['std'], digits, scale)}"
+        viol = pm("proposal_violation", 100) if SHIELDED[m] else "N/A"
+        corr = pm("correction", 1, 3) if SHIELDED[m] else "N/A"
+        lines.append(f"| {METHOD_TITLES[m]} | {o['runs']} | {pm('success_rate', 100)} | {pm('return_mean', 1, 2)} | "
+                     f"{pm('col_per_1k')} | {pm('drop_rate', 100)} | {viol} | {corr} |")
+    return "\n".join(lines) + "\n"
+
+
+# ----------------------------------------------------------------------------- figures
+
+def _curves(results: list[Result], method: str, key: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean and std of a training-curve key over runs, on the shared progress grid [0, 1]."""
+    grid = np.linspace(0.0, 1.0, 41)
+    ys = []
+    for r in results:
+        if r.method != method or not r.train_curve:
+            continue
+        pts = [(p.get("progress"), p.get(key)) for p in r.train_curve]
+        pts = [(x, y) for x, y in pts if x is not None and y is not None and np.isfinite(y)]
+        if len(pts) < 2:
+            continue
+        x, y = map(np.asarray, zip(*pts))
+        ys.append(np.interp(grid, x, y))
+    if not ys:
+        return grid, np.full_like(grid, np.nan), np.full_like(grid, np.nan)
+    ys = np.stack(ys)
+    return grid, ys.mean(0), ys.std(0)
+
+
+def write_figures(results: list[Result], summary: dict, out_dir: Path) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    methods = summary["methods"]
+    colors = dict(zip(METHODS, ["#7f7f7f", "#1f77b4", "#2ca02c", "#ff7f0e", "#d62728"]))
+    written = []
+
+    # Fig. main_sr: family-level SR (top) and Col./1k (bottom, log scale stands in for the broken axis).
+    fams = list(summary["families"])
+    if fams:
+        fig, (ax_sr, ax_col) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
+        width = 0.8 / max(len(methods), 1)
+        for j, m in enumerate(methods):
+            xs = np.arange(len(fams)) + (j - (len(methods) - 1) / 2) * width
+            sr, sr_err, col, col_err = [], [], [], []
+            for fam in fams:
+                per_scen = [[r.eval.get("success_rate") for r in results if r.method == m and r.scenario == s]
+                            for s in FAMILIES[fam]]
+                vals = [v for vs in per_scen for v in vs if v is not None]
+                sr.append(100 * _mean(vals)); sr_err.append(100 * _std(vals))
+                cvals = [r.eval.get("col_per_1k") for r in results if r.method == m and r.scenario in FAMILIES[fam]]
+                col.append(_mean(cvals)); col_err.append(_std(cvals))
+            ax_sr.bar(xs, sr, width, yerr=sr_err, color=colors[m], label=METHOD_TITLES[m], capsize=2)
+            ax_col.bar(xs, np.maximum(col, 1e-2), width, yerr=col_err, color=colors[m], capsize=2)
+        ax_sr.set_ylabel("SR (%) ↑"); ax_sr.legend(fontsize=7, ncol=3)
+        ax_col.set_ylabel("Col./1k ↓ (log)"); ax_col.set_yscale("log")
+        ax_col.set_xticks(np.arange(len(fams))); ax_col.set_xticklabels(fams)
+        fig.tight_layout(); path = out_dir / "main_sr.png"; fig.savefig(path, dpi=130); plt.close(fig)
+        written.append(path)
+
+    # Fig. reward_drop: training curves of return and drop rate.
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+    for key, ax, title in (("return_mean", axes[0], "(a) episode return"), ("drop_rate", axes[1], "(b) drop rate")):
+        for m in methods:
+            g, mu, sd = _curves(results, m, key)
+            ax.plot(g, mu, color=colors[m], label=METHOD_TITLES[m]); ax.fill_between(g, mu - sd, mu + sd, color=colors[m], alpha=0.15)
+        ax.set_title(title); ax.set_xlabel("training progress")
+    axes[0].legend(fontsize=7)
+    fig.tight_layout(); path = out_dir / "reward_drop.png"; fig.savefig(path, dpi=130); plt.close(fig)
+    written.append(path)
+
+    # Fig. sail_talo_ablation: mechanism panels (a)-(d).
+    panels = [("proposal_violation", "(a) proposal violation"), ("correction", "(b) proposal–execution correction"),
+              ("w_gap", "(c) $W_{gap}$"), ("cos_ind_team", "(d) cos($g_{ind}$, $g_{team}$)")]
+    fig, axes = plt.subplots(2, 2, figsize=(9, 6))
+    for ax, (key, title) in zip(axes.flat, panels):
+        for m in methods:
+            if not SHIELDED[m]:
+                continue
+            g, mu, sd = _curves(results, m, key)
+            ax.plot(g, mu, color=colors[m], label=METHOD_TITLES[m]); ax.fill_between(g, mu - sd, mu + sd, color=colors[m], alpha=0.15)
+        ax.set_title(title, fontsize=9); ax.set_xlabel("training progress")
+    axes[0, 0].legend(fontsize=7)
+    fig.tight_layout(); path = out_dir / "sail_talo_ablation.png"; fig.savefig(path, dpi=130); plt.close(fig)
+    written.append(path)
+
+    # Fig. payload_panels: execution-level quality per method.
+    keys = [("tilt", "(a) payload tilt"), ("heading_error", "(b) heading error"),
+            ("height_error", "(c) height error"), ("completion_time", "(d) completion time")]
+    fig, axes = plt.subplots(1, 4, figsize=(12, 3))
+    for ax, (key, title) in zip(axes, keys):
+        mus = [summary["overall"][m][key]["mean"] for m in methods]
+        sds = [summary["overall"][m][key]["std"] for m in methods]
+        ax.bar(range(len(methods)), mus, yerr=sds, color=[colors[m] for m in methods], capsize=2)
+        ax.set_xticks(range(len(methods))); ax.set_xticklabels([METHOD_TITLES[m] for m in methods], rotation=45, fontsize=7)
+        ax.set_title(title, fontsize=9)
+    fig.tight_layout(); path = out_dir / "payload_panels.png"; fig.savefig(path, dpi=130); plt.close(fig)
+    written.append(path)
+    return written
+
+
+def write_report(result_paths: Iterable[Path], out_dir: Path) -> dict:
+    results = load_results(result_paths)
+    if not results:
+        raise ValueError("no results to report")
+    summary = summarize(results)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "table1.md").write_text(table_markdown(summary))
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=True))
+    figures = write_figures(results, summary, out_dir)
+    return {"table": str(out_dir / "table1.md"), "summary": str(out_dir / "summary.json"),
+            "figures": [str(p) for p in figures], "runs": len(results)}

@@ -1,0 +1,56 @@
+"""Table I aggregation against hand-computed values on synthetic results."""
+import json
+
+import pytest
+
+from common.report import EVAL_KEYS, load_results, summarize, table_markdown, write_report
+
+
+def _result(tmp_path, method, scenario, seed, sr, col, curve_scale=1.0):
+    ev = {k: 0.5 for k in EVAL_KEYS}
+    ev.update(success_rate=sr, col_per_1k=col)
+    data = {
+        "method": method, "scenario": scenario, "seed": seed, "eval": ev, "budget": {"updates": 2},
+        "train_curve": [{"progress": p, "return_mean": curve_scale * p, "drop_rate": 0.1,
+                         "proposal_violation": 0.2, "correction": 0.1, "w_gap": 1.0, "cos_ind_team": 0.9}
+                        for p in (0.0, 0.5, 1.0)],
+    }
+    path = tmp_path / f"{method}__{scenario}__{seed}.json"
+    path.write_text(json.dumps(data))
+    return path
+
+
+def test_family_and_overall_means(tmp_path):
+    paths = [
+        _result(tmp_path, "happo", "narrow_gate", 0, 0.6, 100.0),
+        _result(tmp_path, "happo", "narrow_gate", 1, 0.8, 200.0),
+        _result(tmp_path, "happo", "needle_gate", 0, 0.4, 50.0),
+        _result(tmp_path, "sage", "narrow_gate", 0, 0.9, 1.0),
+        _result(tmp_path, "sage", "needle_gate", 0, 0.7, 0.0),
+    ]
+    s = summarize(load_results(paths))
+    assert s["scenarios"]["narrow_gate"]["happo"]["success_rate"] == pytest.approx(0.7)
+    # family mean is the mean of scenario means: (0.7 + 0.4) / 2
+    assert s["families"]["LCP"]["happo"]["success_rate"] == pytest.approx(0.55)
+    # overall is across runs: mean(0.6, 0.8, 0.4), population std
+    assert s["overall"]["happo"]["success_rate"]["mean"] == pytest.approx(0.6)
+    assert s["overall"]["happo"]["success_rate"]["std"] == pytest.approx(0.163299, abs=1e-5)
+    md = table_markdown(s)
+    assert "| HAPPO | 3 | 60.0 ± 16.3 |" in md
+    assert "N/A" in md.split("HAPPO | 3")[1].splitlines()[0]  # unshielded: no proposal-violation probe
+    assert "SAGE+CBF" in md and "LCP mean" in md
+
+
+def test_write_report_produces_table_and_figures(tmp_path):
+    paths = [_result(tmp_path, m, "maze", 0, 0.5, 1.0) for m in ("happo", "happo_cbf", "sage")]
+    out = write_report(paths, tmp_path / "report")
+    assert out["runs"] == 3
+    for fig in out["figures"]:
+        assert (tmp_path / "report" / fig.split("/")[-1]).stat().st_size > 1000
+
+
+def test_malformed_result_names_file(tmp_path):
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"method": "happo"}))
+    with pytest.raises(ValueError, match="bad.json"):
+        load_results([bad])
