@@ -1,0 +1,159 @@
+"""Team-Averaged Lyapunov policy Optimization (TALO), Sec. III-D of the paper.
+
+Everything here is written for *ascent* directions on surrogates: the actor
+update is ``theta <- theta + eta * g_TALO``. Callers that use a minimizing
+optimizer set ``param.grad = -g``.
+
+Given per-carrier surrogates ``L_i`` (Eq. ppo_surrogates), the team surrogate
+``L_team`` and the parameter groups ``theta_1..theta_N``:
+
+    g_ind  = [grad_{theta_i} L_i]_i                    # Eq. (talo_gap)
+    g_team = grad_theta L_team
+    W_gap  = 1/2 ||g_ind - g_team||^2
+    grad W = d W_gap / d theta        (double backward = Hessian-vector products)
+    Delta  = grad W . g_ind + sigma * W_gap
+    g_TALO = g_ind - [Delta]_+ / (||grad W||^2 + eps) * grad W   # Eq. (talo_projection)
+
+``grad W`` is obtained by differentiating ``W_gap`` through the gradient
+graphs (``create_graph=True``); no Hessian is ever formed.
+
+Partner detachment: the paper forms ``grad_{theta_i} L_i`` with the partner
+nominal branches detached before the SAIL map. Because ``theta_i`` enters
+only carrier ``i``'s tree, the *value* of that partial derivative is the same
+whether partner branches are detached or not; detaching only stops ``L_i``
+from sending gradient into ``theta_j``. Here block ``i`` is always the partial
+``autograd.grad(L_i, theta_i)``, so callers may build ``L_i`` on the shared
+(undetached) graph, and then ``grad W`` is the exact gradient of ``W_gap``,
+including the cross-carrier curvature through SAIL that a detached graph
+would drop. (tests/test_algos.py checks the detached and shared forms agree.)
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+from torch import Tensor
+
+ParamGroups = Sequence[Sequence[Tensor]]
+
+
+def flat_grad(output: Tensor, params: Sequence[Tensor], create_graph: bool = False) -> Tensor:
+    """Flat gradient of a scalar w.r.t. ``params``; unused parameters give zeros."""
+    params = list(params)
+    if not output.requires_grad:
+        return torch.cat([torch.zeros_like(p).reshape(-1) for p in params])
+    grads = torch.autograd.grad(
+        output, params, create_graph=create_graph, retain_graph=True, allow_unused=True
+    )
+    return torch.cat(
+        [(torch.zeros_like(p) if g is None else g).reshape(-1) for g, p in zip(grads, params)]
+    )
+
+
+def individual_gradient(
+    losses: Sequence[Tensor], groups: ParamGroups, create_graph: bool = False,
+    separable: bool = False,
+) -> Tensor:
+    """``g_ind = [grad_{theta_i} L_i]`` as one flat vector (Eq. talo_gap).
+
+    ``separable=True`` promises that ``L_i`` depends on ``theta`` only through
+    ``theta_i`` (identity proposal center, or partners detached); then one
+    backward pass of ``sum_i L_i`` gives every block at once.
+    """
+    if len(losses) != len(groups):
+        raise ValueError(f"{len(losses)} surrogates for {len(groups)} parameter groups")
+    if separable:
+        return flat_grad(torch.stack(list(losses)).sum(), [p for g in groups for p in g], create_graph)
+    return torch.cat([flat_grad(L, g, create_graph) for L, g in zip(losses, groups)])
+
+
+def cosine(a: Tensor, b: Tensor, eps: float = 1e-12) -> float:
+    """cos(a, b); 0 when either vector is zero."""
+    na, nb = a.norm(), b.norm()
+    if float(na) <= eps or float(nb) <= eps:
+        return 0.0
+    return float(a @ b / (na * nb))
+
+
+def talo_project(
+    g_ind: Tensor, grad_w: Tensor, w_gap: Tensor | float, sigma: float, eps: float
+) -> tuple[Tensor, float]:
+    """Eq. (talo_projection): the regularized closest update to ``g_ind`` meeting
+    Eq. (talo_condition) ``grad W . g <= -sigma W``. Returns ``(g_TALO, Delta_gap)``.
+
+    With ``eps = 0`` and ``grad W = 0`` the condition cannot be met by any step
+    along ``grad W``; we then leave ``g_ind`` unchanged instead of dividing by 0.
+    """
+    if sigma < 0 or eps < 0:
+        raise ValueError(f"TALO needs sigma >= 0 and eps >= 0 (got {sigma}, {eps})")
+    g_ind = g_ind.detach()
+    grad_w = grad_w.detach()
+    w = float(w_gap)
+    delta = float(grad_w @ g_ind) + sigma * w
+    denom = float(grad_w @ grad_w) + eps
+    if delta <= 0.0 or denom <= 0.0:
+        return g_ind.clone(), delta
+    return g_ind - (delta / denom) * grad_w, delta
+
+
+@dataclass
+class TaloResult:
+    """Flat vectors over the concatenated parameter groups, plus scalars."""
+    g_ind: Tensor
+    g_team: Tensor
+    grad_w: Tensor
+    g_talo: Tensor
+    w_gap: float
+    delta_gap: float
+    cos_ind_team: float
+
+    @property
+    def corrected(self) -> bool:
+        return self.delta_gap > 0.0
+
+
+def talo_gap(
+    losses: Sequence[Tensor], team_loss: Tensor, groups: ParamGroups,
+    separable: bool = False, with_hvp: bool = True,
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+    """Eq. (talo_gap): returns ``(g_ind, g_team, W_gap, grad_theta W_gap)``.
+
+    ``with_hvp=False`` skips the double backward (diagnostics only) and
+    returns ``None`` for the last entry.
+    """
+    params = [p for g in groups for p in g]
+    g_ind = individual_gradient(losses, groups, create_graph=with_hvp, separable=separable)
+    g_team = flat_grad(team_loss, params, create_graph=with_hvp)
+    w_gap = 0.5 * (g_ind - g_team).pow(2).sum()
+    if not with_hvp:
+        return g_ind.detach(), g_team.detach(), w_gap.detach(), None
+    # Double backward: d/dtheta of 1/2||g_ind - g_team||^2 = J^T (g_ind - g_team),
+    # i.e. Hessian-vector products through both gradient graphs.
+    grad_w = flat_grad(w_gap, params, create_graph=False)
+    return g_ind.detach(), g_team.detach(), w_gap.detach(), grad_w
+
+
+def talo_direction(
+    losses: Sequence[Tensor], team_loss: Tensor, groups: ParamGroups,
+    sigma: float, eps: float, separable: bool = False,
+) -> TaloResult:
+    """Full TALO step direction (Eqs. talo_gap, talo_condition, talo_projection)."""
+    g_ind, g_team, w_gap, grad_w = talo_gap(losses, team_loss, groups, separable=separable)
+    g_talo, delta = talo_project(g_ind, grad_w, w_gap, sigma, eps)
+    return TaloResult(
+        g_ind=g_ind, g_team=g_team, grad_w=grad_w, g_talo=g_talo,
+        w_gap=float(w_gap), delta_gap=delta, cos_ind_team=cosine(g_ind, g_team),
+    )
+
+
+def unflatten_like(vec: Tensor, params: Sequence[Tensor]) -> list[Tensor]:
+    """Split a flat vector into tensors shaped like ``params``."""
+    out, start = [], 0
+    for p in params:
+        n = p.numel()
+        out.append(vec[start:start + n].view_as(p))
+        start += n
+    if start != vec.numel():
+        raise ValueError(f"vector of {vec.numel()} entries for {start} parameters")
+    return out

@@ -1,0 +1,175 @@
+"""TALO math (common/talo.py) against finite differences and the paper's conditions."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from common.talo import (
+    cosine, individual_gradient, talo_direction, talo_gap, talo_project, unflatten_like,
+)
+
+F64 = torch.float64  # finite differences need double precision
+
+
+def coupled_model(seed: int = 0, n: int = 3, dim: int = 4):
+    """Three parameter blocks with coupled smooth surrogates.
+
+    L_i depends on every block (like the SAIL-coupled surrogates) and the team
+    surrogate is a different smooth function, so g_ind != g_team and the
+    cross-block second derivatives are non-zero.
+    """
+    gen = torch.Generator().manual_seed(seed)
+    thetas = [torch.randn(dim, generator=gen, dtype=F64).requires_grad_() for _ in range(n)]
+    A = [torch.randn(dim, dim * n, generator=gen, dtype=F64) * 0.5 for _ in range(n)]
+    x = torch.randn(16, dim, generator=gen, dtype=F64)
+    adv = torch.randn(16, generator=gen, dtype=F64)
+
+    def surrogates(ths):
+        full = torch.cat(ths)
+        # per-carrier "log-ratio" of a coupled center, like SAIL's output
+        logr = [x @ torch.tanh(A[i] @ full) * 0.3 + 0.1 * (x @ ths[i]) for i in range(n)]
+        L = [(torch.exp(lr) * adv).mean() for lr in logr]
+        team = (torch.exp(torch.stack(logr).sum(0)) * adv).mean()
+        return L, team
+
+    return thetas, surrogates
+
+
+def w_value(ths, surrogates) -> float:
+    L, team = surrogates(ths)
+    g_ind = individual_gradient(L, [[t] for t in ths])
+    g_team = torch.autograd.grad(team, ths)
+    g_team = torch.cat([g.reshape(-1) for g in g_team])
+    return float(0.5 * (g_ind - g_team).pow(2).sum())
+
+
+def test_grad_w_matches_central_finite_differences():
+    thetas, surrogates = coupled_model()
+    L, team = surrogates(thetas)
+    _, _, w, grad_w = talo_gap(L, team, [[t] for t in thetas])
+    assert float(w) > 1e-3  # the test is meaningless if the gap vanishes
+    h = 1e-6
+    fd = []
+    for i, t in enumerate(thetas):
+        for k in range(t.numel()):
+            plus = [s.detach().clone().requires_grad_() for s in thetas]
+            minus = [s.detach().clone().requires_grad_() for s in thetas]
+            with torch.no_grad():
+                plus[i][k] += h
+                minus[i][k] -= h
+            fd.append((w_value(plus, surrogates) - w_value(minus, surrogates)) / (2 * h))
+    np.testing.assert_allclose(grad_w.numpy(), np.array(fd), rtol=1e-6, atol=1e-8)
+
+
+def test_individual_blocks_are_partials_of_their_own_surrogate():
+    thetas, surrogates = coupled_model(seed=1)
+    groups = [[t] for t in thetas]
+    L, _ = surrogates(thetas)
+    g = individual_gradient(L, groups)
+    blocks = unflatten_like(g, thetas)
+    for i, t in enumerate(thetas):
+        (ref,) = torch.autograd.grad(L[i], t, retain_graph=True)
+        torch.testing.assert_close(blocks[i], ref, rtol=0, atol=0)
+    # Changing the other surrogates (even in a way that depends on theta_i)
+    # must not change block i.
+    L2 = [L[0], L[1] + 5.0 * thetas[0].pow(3).sum(), L[2] - thetas[0].sum() * thetas[2].sum()]
+    blocks2 = unflatten_like(individual_gradient(L2, groups), thetas)
+    torch.testing.assert_close(blocks2[0], blocks[0], rtol=0, atol=0)
+    assert not torch.allclose(blocks2[2], blocks[2])
+
+
+def test_detached_partners_give_the_same_blocks_and_separable_shortcut():
+    """Detaching partner branches (the paper's recipe) and taking the partial on
+    the shared graph give the same g_ind; with detached partners the one-pass
+    ``separable`` shortcut is valid."""
+    thetas, surrogates = coupled_model(seed=2)
+    groups = [[t] for t in thetas]
+    L, _ = surrogates(thetas)
+    g_shared = individual_gradient(L, groups)
+    L_det = []
+    for i in range(3):
+        ths = [t if j == i else t.detach() for j, t in enumerate(thetas)]
+        L_det.append(surrogates(ths)[0][i])
+    g_det = individual_gradient(L_det, groups, separable=True)
+    torch.testing.assert_close(g_det, g_shared, rtol=1e-12, atol=1e-12)
+
+
+def test_unregularized_correction_meets_descent_condition_on_model():
+    thetas, surrogates = coupled_model(seed=3)
+    L, team = surrogates(thetas)
+    for sigma in (0.1, 1.0, 10.0):
+        res = talo_direction(L, team, [[t] for t in thetas], sigma=sigma, eps=0.0)
+        assert res.grad_w.norm() > 0
+        assert float(res.grad_w @ res.g_talo) <= -sigma * res.w_gap + 1e-9 * max(1.0, res.w_gap)
+    assert -1.0 <= res.cos_ind_team <= 1.0
+
+
+finite = st.floats(-10, 10, allow_nan=False, allow_infinity=False)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    g=arrays(np.float64, 7, elements=finite),
+    gw=arrays(np.float64, 7, elements=finite),
+    w=st.floats(0, 100),
+    sigma=st.floats(0, 50),
+)
+def test_projection_properties(g, gw, w, sigma):
+    g_t, gw_t = torch.tensor(g, dtype=F64), torch.tensor(gw, dtype=F64)
+    out, delta = talo_project(g_t, gw_t, w, sigma=sigma, eps=0.0)
+    assert delta == pytest.approx(float(gw_t @ g_t) + sigma * w, abs=1e-9)
+    if delta <= 0 or float(gw_t @ gw_t) == 0.0:
+        # no correction: returned exactly
+        assert torch.equal(out, g_t)
+    else:
+        # Eq. (talo_condition) holds (with equality) and the change is along grad W
+        lhs = float(gw_t @ out)
+        assert lhs <= -sigma * w + 1e-7 * (1 + abs(sigma * w) + float(gw_t.norm() * g_t.norm()))
+        resid = out - g_t
+        cross = resid - (resid @ gw_t) / (gw_t @ gw_t) * gw_t
+        assert float(cross.norm()) <= 1e-9 * (1 + float(resid.norm()))
+    # the regularized correction is never larger than the unregularized one
+    out_eps, _ = talo_project(g_t, gw_t, w, sigma=sigma, eps=1e-3)
+    assert float((out_eps - g_t).norm()) <= float((out - g_t).norm()) + 1e-12
+
+
+def test_no_correction_when_condition_already_holds():
+    g = torch.tensor([1.0, -2.0, 0.5], dtype=F64)
+    gw = torch.tensor([-1.0, 1.0, 0.0], dtype=F64)  # gw.g = -3
+    out, delta = talo_project(g, gw, 1.0, sigma=2.0, eps=1e-8)
+    assert delta == pytest.approx(-1.0)
+    assert torch.equal(out, g)
+
+
+def test_talo_step_decreases_gap_to_first_order():
+    thetas, surrogates = coupled_model(seed=4)
+    L, team = surrogates(thetas)
+    res = talo_direction(L, team, [[t] for t in thetas], sigma=1.0, eps=1e-8)
+    assert res.corrected  # this seed has an uncorrected direction that grows W
+
+    def w_after(direction, step):
+        ths = [
+            (t.detach() + step * d).requires_grad_()
+            for t, d in zip(thetas, unflatten_like(direction, thetas))
+        ]
+        return w_value(ths, surrogates)
+
+    step = 1e-5
+    dw_talo = (w_after(res.g_talo, step) - res.w_gap) / step
+    dw_ind = (w_after(res.g_ind, step) - res.w_gap) / step
+    assert dw_talo < dw_ind
+    assert dw_talo <= -1.0 * res.w_gap * 0.99  # descent condition, first order
+
+
+def test_cosine_and_errors():
+    assert cosine(torch.tensor([1.0, 0.0]), torch.tensor([0.0, 2.0])) == pytest.approx(0.0)
+    assert cosine(torch.tensor([1.0, 1.0]), torch.tensor([2.0, 2.0])) == pytest.approx(1.0)
+    assert cosine(torch.zeros(2), torch.ones(2)) == 0.0
+    with pytest.raises(ValueError):
+        talo_project(torch.ones(2), torch.ones(2), 1.0, sigma=-1.0, eps=0.0)
+    with pytest.raises(ValueError):
+        individual_gradient([torch.tensor(1.0)], [[], []])
