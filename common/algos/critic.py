@@ -1,0 +1,123 @@
+"""Centralized critic with a team-averaged context (Eq. team_context), value
+normalization and generalized advantage estimation on executed transitions."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+
+class TeamCritic(nn.Module):
+    """``V_omega(o, z)`` with ``z = mean_i psi_phi(o_i)`` (Eq. team_context).
+
+    ``psi_phi`` is one encoder shared by all carriers, so ``z`` is invariant to
+    the carrier order. ``V`` sees the concatenated observations and ``z``; with
+    ``state_dim > 0`` it also sees the environment's global state (the
+    ``critic_uses_state`` option; off by default to match the paper). Outputs
+    are in normalized value units (see ``ValueNormalizer``).
+    """
+
+    def __init__(self, n_agents: int, obs_dim: int, state_dim: int = 0,
+                 hidden: int = 128, latent: int = 32):
+        super().__init__()
+        self.n_agents, self.obs_dim, self.state_dim = n_agents, obs_dim, state_dim
+        self.encoder = nn.Sequential(
+            nn.Linear(obs_dim, hidden), nn.Tanh(), nn.Linear(hidden, latent), nn.Tanh()
+        )
+        self.value = nn.Sequential(
+            nn.Linear(n_agents * obs_dim + latent + state_dim, hidden), nn.Tanh(),
+            nn.Linear(hidden, hidden), nn.Tanh(),
+            nn.Linear(hidden, 1),
+        )
+
+    def forward(self, obs: Tensor, state: Tensor | None = None) -> Tensor:
+        """obs ``[B, N, obs_dim]``, state ``[B, S]`` -> value ``[B]``."""
+        if obs.dim() != 3 or obs.shape[1:] != (self.n_agents, self.obs_dim):
+            raise ValueError(f"critic expects obs [B,{self.n_agents},{self.obs_dim}], got {tuple(obs.shape)}")
+        z = self.encoder(obs).mean(dim=1)                      # Eq. (team_context)
+        parts = [obs.flatten(1), z]
+        if self.state_dim:
+            if state is None or state.shape[-1] != self.state_dim:
+                raise ValueError(f"critic expects state [B,{self.state_dim}]")
+            parts.append(state)
+        return self.value(torch.cat(parts, dim=-1)).squeeze(-1)
+
+
+class ValueNormalizer(nn.Module):
+    """Running mean/std of returns (exact pooled moments, MAPPO-ValueNorm-like
+    without PopArt's output rescaling). The critic regresses normalized
+    returns; GAE uses denormalized values."""
+
+    def __init__(self, eps: float = 1e-5):
+        super().__init__()
+        self.eps = eps
+        self.register_buffer("mean", torch.zeros((), dtype=torch.float64))
+        self.register_buffer("var", torch.ones((), dtype=torch.float64))
+        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+
+    @torch.no_grad()
+    def update(self, x: Tensor) -> None:
+        x = x.detach().to(torch.float64).reshape(-1)
+        n = float(x.numel())
+        if n == 0:
+            return
+        b_mean, b_var = x.mean(), x.var(unbiased=False)
+        tot = self.count + n
+        delta = b_mean - self.mean
+        new_mean = self.mean + delta * n / tot
+        m2 = self.var * self.count + b_var * n + delta.pow(2) * self.count * n / tot
+        self.mean.copy_(new_mean)
+        self.var.copy_(m2 / tot)
+        self.count.copy_(tot)
+
+    @property
+    def std(self) -> Tensor:
+        return (self.var + self.eps).sqrt()
+
+    def normalize(self, x: Tensor) -> Tensor:
+        return ((x - self.mean) / self.std).to(x.dtype)
+
+    def denormalize(self, x: Tensor) -> Tensor:
+        return (x * self.std + self.mean).to(x.dtype)
+
+
+def compute_gae(
+    reward: np.ndarray, value: np.ndarray, next_value: np.ndarray,
+    terminated: np.ndarray, truncated: np.ndarray, gamma: float, lam: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """GAE over ``[T, K]`` arrays of executed transitions.
+
+    ``next_value[t]`` is the value of the state reached after step ``t``: the
+    next row's state, or the pre-reset ``final_obs/final_state`` where the
+    episode was truncated (time limit: bootstrap), or the rollout's last state
+    at ``t = T-1``. Termination zeroes the bootstrap; either end cuts the
+    lambda-trace. Returns ``(advantages, returns)`` with ``returns = adv + value``.
+    """
+    reward = np.asarray(reward, dtype=np.float64)
+    shape = reward.shape
+    if reward.ndim != 2:
+        raise ValueError(f"GAE expects [T, K] arrays, got reward {shape}")
+    for name, arr in (("value", value), ("next_value", next_value),
+                      ("terminated", terminated), ("truncated", truncated)):
+        if np.shape(arr) != shape:
+            raise ValueError(f"GAE: {name} has shape {np.shape(arr)}, expected {shape}")
+    term = np.asarray(terminated, dtype=bool)
+    done = term | np.asarray(truncated, dtype=bool)
+    value = np.asarray(value, dtype=np.float64)
+    next_value = np.asarray(next_value, dtype=np.float64)
+    delta = reward + gamma * np.where(term, 0.0, next_value) - value
+    adv = np.zeros(shape, dtype=np.float64)
+    running = np.zeros(shape[1], dtype=np.float64)
+    for t in range(shape[0] - 1, -1, -1):
+        running = delta[t] + gamma * lam * np.where(done[t], 0.0, running)
+        adv[t] = running
+    return adv, adv + value
+
+
+def next_values(value: np.ndarray, last_value: np.ndarray, final_value: np.ndarray,
+                truncated: np.ndarray) -> np.ndarray:
+    """Assemble ``next_value`` for ``compute_gae`` from ``value [T,K]``, the
+    value after the last step ``[K]`` and the pre-reset values ``[T,K]`` (used
+    where ``truncated``)."""
+    nxt = np.concatenate([value[1:], np.asarray(last_value)[None]], axis=0)
+    return np.where(np.asarray(truncated, dtype=bool), final_value, nxt)
