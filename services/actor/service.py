@@ -1,0 +1,240 @@
+"""Actor service: K environments, newest parameters, one batched shield query
+per step, trajectory chunks every ``chunk_len`` steps.
+
+Per step (Eq. action_chain): ``common.rollout.propose`` gives a_ST, the
+proposal center a_bar (SAIL map with the learner's kappa in SAIL methods,
+identity otherwise) and a sampled a_prop with its behavior log-prob; shielded
+methods send all K rows in ONE query and execute the shield's a_exec,
+unshielded HAPPO executes a_prop. Fail closed: without a shield answer
+nothing is executed; the step is retried, counted, and after
+``actor.unhealthy_after_s`` the actor reports itself unhealthy (status,
+metric, log) and, if configured, exits with code 3.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+
+import numpy as np
+
+from common import keys, wire
+from common.metrics_prom import Window
+from services.base import RateMeter, Service
+
+UNSHIELDED_METHODS = ("happo",)   # Sec. IV: HAPPO is the unshielded reference
+SAIL_METHODS = ("sail_cbf", "sage")
+EXIT_UNHEALTHY = 3
+
+# per-step fields of a chunk (docs/wire.md, traj), in the order they are stacked
+STEP_FIELDS = ("obs", "state", "C", "c", "row_mask", "fixed_mask", "a_st", "a_bar", "a_prop",
+               "a_exec", "logp", "leaf", "reward", "terminated", "truncated", "final_state")
+_DTYPES = {"row_mask": bool, "fixed_mask": bool, "terminated": bool, "truncated": bool, "leaf": np.int64,
+           "obs": np.float32, "state": np.float32, "final_state": np.float32, "logp": np.float64,
+           "reward": np.float64}
+
+
+class ActorUnhealthy(RuntimeError):
+    pass
+
+
+class ActorService(Service):
+    role = "actor"
+
+    def __init__(self, cfg, bus, member_id=0, registry=None, stop=None, env=None, propose=None):
+        super().__init__(cfg, bus, member_id, registry, stop)
+        self.actor_id = int(member_id)
+        self.env = env
+        self._propose = propose
+        self.shielded = cfg.method not in UNSHIELDED_METHODS
+        self.uses_sail = cfg.method in SAIL_METHODS
+        self.rng = np.random.default_rng([cfg.seed, 1000 + self.actor_id])
+        # parameters: written by the subscriber thread, adopted by the loop
+        self._lock = threading.Lock()
+        self._pending: dict | None = None
+        self.params: dict | None = None
+        self.env_steps = 0
+        self.steps_rate = RateMeter()
+        self.rtt = Window()
+        self.recent_success: deque[float] = deque(maxlen=100)
+        self.shield_failures = 0
+        self.chunks_sent = 0
+
+    # ------------------------------------------------------------- parameters
+    def _on_params(self, _key: str, payload: bytes) -> None:
+        msg = self.decode(payload, "params")
+        if msg is None:
+            return
+        b = msg.body
+        with self._lock:
+            cur = self._pending or self.params
+            # a restarted learner (new incarnation) may resume at a lower version
+            if cur is None or b["incarnation"] != cur["incarnation"] or b["version"] > cur["version"]:
+                self._pending = b
+
+    def _adopt_params(self) -> None:
+        with self._lock:
+            if self._pending is not None:
+                self.params, self._pending = self._pending, None
+                self.m.version.labels(**self.labels).set(self.params["version"])
+
+    def status_fields(self) -> dict:
+        sr = float(np.mean(self.recent_success)) if self.recent_success else None
+        return {"version": self.params["version"] if self.params else -1, "env_steps": self.env_steps,
+                "env_steps_per_s": self.steps_rate.rate(), "success_rate": sr,
+                "shield_p99_s": self.rtt.quantile(0.99),
+                "extra": {"shield_failures": float(self.shield_failures), "chunks": float(self.chunks_sent),
+                          "K": float(self.cfg.envs_per_actor)}}
+
+    # ------------------------------------------------------------- shield
+    def filter_actions(self, a_prop, C, c, row_mask, fixed_mask) -> np.ndarray | None:
+        """Exact joint CBF-QP via the shield service; retries until answered.
+        Returns None only if a stop was requested (then nothing is executed)."""
+        payload = self.encode("shield_req", {"a_prop": a_prop, "C": C, "c": c,
+                                              "row_mask": row_mask, "fixed_mask": fixed_mask})
+        key = keys.shield(self.cfg.run_id)
+        acfg = self.cfg.actor
+        first_fail = None
+        backoff = 0.01
+        while not self.stop.is_set():
+            t0 = time.perf_counter()
+            reply = self.bus.request(key, payload, timeout=acfg.shield_timeout_s)
+            why = "no reply (shield unreachable or timed out)"
+            if reply is not None and reply.ok is not None:
+                msg = self.decode(reply.ok, "shield_rep")
+                if msg is not None and msg.body["a_exec"].shape == a_prop.shape:
+                    self.rtt.add(time.perf_counter() - t0)
+                    self.m.roundtrip.labels(**self.labels).observe(time.perf_counter() - t0)
+                    if self.state == "unhealthy":
+                        self.log.info("shield answers again; healthy")
+                        self.state = "running"
+                        self.m.healthy.labels(**self.labels).set(1)
+                    return msg.body["a_exec"]
+                why = "invalid reply"
+            elif reply is not None:
+                why = "shield error: " + reply.err.decode(errors="replace")
+            # fail closed: count, wait, retry; never fall back to a_prop
+            self.shield_failures += 1
+            self.m.shield_timeouts.labels(**self.labels).inc()
+            now = time.monotonic()
+            first_fail = first_fail if first_fail is not None else now
+            if now - first_fail > acfg.unhealthy_after_s and self.state != "unhealthy":
+                self.state = "unhealthy"
+                self.m.healthy.labels(**self.labels).set(0)
+                text = f"no shield answer for {now - first_fail:.1f} s ({why}); executing nothing"
+                self.log.error(text)
+                self.publish_status(force=True, message=text)
+                if acfg.exit_on_unhealthy:
+                    raise ActorUnhealthy(text)
+            elif self.shield_failures <= 3 or self.shield_failures % 100 == 0:
+                self.log.warning("shield query failed (%s); retrying, nothing executed", why)
+            self.publish_status()
+            self.stop.wait(backoff)
+            backoff = min(backoff * 2, 0.5)
+        return None
+
+    # ------------------------------------------------------------- loop
+    def _make_env(self):
+        from common.env import BatchEnv
+
+        return BatchEnv(self.cfg.env_config(), self.cfg.envs_per_actor, seed=self.cfg.seed * 1000 + self.actor_id)
+
+    def run(self) -> int:
+        if self._propose is None:
+            from common.rollout import propose
+
+            self._propose = propose
+        env = self.env if self.env is not None else self._make_env()
+        self.bus.subscribe(keys.params(self.cfg.run_id), self._on_params)
+        self.listen_control()
+        self.m.healthy.labels(**self.labels).set(1)
+        self.state = "waiting"
+        t_wait = time.monotonic()
+        while self.params is None and not self.stop.is_set():
+            self._adopt_params()
+            self.publish_status()
+            if time.monotonic() - t_wait > self.cfg.actor.params_wait_s and self.state != "unhealthy":
+                self.state = "unhealthy"
+                self.m.healthy.labels(**self.labels).set(0)
+                self.log.error("no parameters after %.0f s", self.cfg.actor.params_wait_s)
+                self.publish_status(force=True, message="no parameters from the learner")
+                if self.cfg.actor.exit_on_unhealthy:
+                    return EXIT_UNHEALTHY
+            self.stop.wait(0.02)
+        self.state = "running"
+        try:
+            self._rollout(env)
+        except ActorUnhealthy:
+            return EXIT_UNHEALTHY
+        finally:
+            self.state = "stopped"
+            self.publish_status(force=True)
+        return 0
+
+    def _rollout(self, env) -> None:
+        out = env.reset()
+        buf: dict[str, list] = {k: [] for k in STEP_FIELDS}
+        versions: list[int] = []
+        episodes: list[dict] = []
+        chunk_incarnation = None
+        T = self.cfg.chunk_len
+        while not self.stop.is_set():
+            self._adopt_params()
+            p = self.params
+            if versions and p["incarnation"] != chunk_incarnation:
+                # learner restarted: its resumed policy starts a fresh chunk
+                buf = {k: [] for k in STEP_FIELDS}
+                versions, episodes = [], []
+            chunk_incarnation = p["incarnation"]
+            kappa = float(p["settings"].get("kappa", 0.0)) if self.uses_sail else 0.0
+            prop = self._propose(p["params"], out["obs"], out["C"], out["c"], out["row_mask"],
+                                 out["fixed_mask"], out["human_action"], kappa, self.rng, "train")
+            a_prop = np.asarray(prop["a_prop"], dtype=np.float64)
+            if self.shielded:
+                a_exec = self.filter_actions(a_prop, out["C"], out["c"], out["row_mask"], out["fixed_mask"])
+                if a_exec is None:  # stopping: nothing executed
+                    return
+            else:
+                a_exec = a_prop
+            nxt = env.step(a_exec)
+            step = {"obs": out["obs"], "state": out["state"], "C": out["C"], "c": out["c"],
+                    "row_mask": out["row_mask"], "fixed_mask": out["fixed_mask"],
+                    "a_st": prop["a_st"], "a_bar": prop["a_bar"], "a_prop": a_prop, "a_exec": a_exec,
+                    "logp": prop["logp"], "leaf": prop["leaf"], "reward": nxt["reward"],
+                    "terminated": nxt["terminated"], "truncated": nxt["truncated"],
+                    "final_state": nxt["final_state"]}
+            for k in STEP_FIELDS:  # copy: envs may reuse their output buffers
+                buf[k].append(np.array(step[k], copy=True))
+            versions.append(p["version"])
+            K = a_exec.shape[0]
+            self.env_steps += K
+            self.steps_rate.add(self.env_steps)
+            self.m.env_steps.labels(**self.labels).inc(K)
+            for ep in nxt.get("episodes", []):
+                ep = {k: float(v) for k, v in ep.items() if isinstance(v, (int, float, np.number, bool, np.bool_))}
+                episodes.append(ep)
+                self.m.episodes.labels(**self.labels).inc()
+                if "success" in ep:
+                    self.recent_success.append(ep["success"])
+            if self.recent_success:
+                self.m.success_rate.labels(**self.labels).set(float(np.mean(self.recent_success)))
+            out = nxt
+            if len(versions) == T:
+                self._publish_chunk(buf, versions, episodes, out)
+                buf = {k: [] for k in STEP_FIELDS}
+                versions, episodes = [], []
+            self.publish_status()
+
+    def _publish_chunk(self, buf, versions, episodes, last) -> None:
+        body = {k: np.stack([np.asarray(x) for x in buf[k]]).astype(_DTYPES.get(k, np.float64), copy=False)
+                for k in STEP_FIELDS}
+        body.update({
+            "actor_id": self.actor_id, "version": int(min(versions)),
+            "incarnation": self.params["incarnation"], "env_steps": self.env_steps,
+            "version_t": np.asarray(versions, dtype=np.int64),
+            "last_state": np.asarray(last["state"], dtype=np.float32),
+            "last_obs": np.asarray(last["obs"], dtype=np.float32),
+            "episodes": episodes,
+        })
+        self.send(keys.traj(self.cfg.run_id, self.actor_id), "traj", body)
+        self.chunks_sent += 1

@@ -1,0 +1,155 @@
+"""What every service loop shares: identity, metrics labels, message
+encode/decode with counted rejections, status heartbeats, the stop event,
+and the process entry-point plumbing (config file, signals, Zenoh session)."""
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import threading
+import time
+from collections import defaultdict, deque
+
+from prometheus_client import CollectorRegistry
+
+from common import keys, wire
+from common.metrics_prom import SageMetrics, serve_metrics
+from common.transport import Bus
+from services.config import TrainConfig
+
+log = logging.getLogger("sage.services")
+
+
+class Service:
+    role = "service"
+
+    def __init__(self, cfg: TrainConfig, bus: Bus, member_id: int | str = 0,
+                 registry: CollectorRegistry | None = None, stop: threading.Event | None = None):
+        self.cfg = cfg
+        self.bus = bus
+        self.member_id = str(member_id)
+        self.sender = f"{self.role}/{self.member_id}"
+        self.registry = registry if registry is not None else CollectorRegistry()
+        self.m = SageMetrics.for_registry(self.registry)
+        self.labels = {"role": self.role, "actor_id": self.member_id if self.role == "actor" else ""}
+        self.stop = stop if stop is not None else threading.Event()
+        self._seq: dict[str, int] = defaultdict(int)
+        self._t0 = time.monotonic()
+        self._last_status = -1e9
+        self.rejected: dict[str, int] = defaultdict(int)  # reason -> count (also in Prometheus)
+        self.state = "starting"
+        self.log = logging.getLogger(f"sage.{self.role}.{self.member_id}")
+
+    # ------------------------------------------------------------- messages
+    def encode(self, kind: str, body: dict) -> bytes:
+        seq = self._seq[kind]
+        self._seq[kind] += 1
+        return wire.encode(kind, body, run_id=self.cfg.run_id, sender=self.sender, seq=seq)
+
+    def send(self, key: str, kind: str, body: dict) -> None:
+        self.bus.publish(key, self.encode(kind, body))
+
+    def decode(self, payload: bytes, expect) -> wire.Message | None:
+        """Decode or count-and-log the rejection; never raises."""
+        try:
+            msg = wire.decode(payload, run_id=self.cfg.run_id, expect=expect)
+        except wire.WireError as exc:
+            self.rejected[exc.reason] += 1
+            self.m.rejected.labels(**self.labels, reason=exc.reason).inc()
+            n = self.rejected[exc.reason]
+            if n <= 3 or n % 100 == 0:  # log the first few and then every 100th
+                self.log.warning("rejected message (%s, #%d): %s", exc.reason, n, exc.detail)
+            return None
+        self.m.received.labels(**self.labels, kind=msg.kind).inc()
+        return msg
+
+    # ------------------------------------------------------------- status / control
+    def status_fields(self) -> dict:
+        """Role-specific status fields; overridden by services."""
+        return {}
+
+    def publish_status(self, force: bool = False, message: str = "") -> None:
+        now = time.monotonic()
+        if not force and now - self._last_status < self.cfg.status_period_s:
+            return
+        self._last_status = now
+        body = {"role": self.role, "id": self.member_id, "state": self.state, "pid": os.getpid(),
+                "uptime_s": now - self._t0, "version": -1, "env_steps": 0, "env_steps_per_s": 0.0,
+                "updates": 0, "success_rate": None, "shield_p99_s": None, "message": message,
+                "extra": {}}
+        body.update(self.status_fields())
+        if message:
+            body["message"] = message
+        self.send(keys.status(self.cfg.run_id, self.role, self.member_id), "status", body)
+
+    def listen_control(self) -> None:
+        def on_control(_key: str, payload: bytes) -> None:
+            msg = self.decode(payload, "control")
+            if msg is None:
+                return
+            target = msg.body["target"]
+            if msg.body["command"] == "stop" and target in ("*", self.role, self.sender):
+                self.log.info("stop requested by %s", msg.sender)
+                self.stop.set()
+
+        self.bus.subscribe(keys.control(self.cfg.run_id), on_control)
+
+
+class RateMeter:
+    """Events per second over a sliding window of (time, count) samples."""
+
+    def __init__(self, window_s: float = 10.0):
+        self.window_s = window_s
+        self._d: deque[tuple[float, int]] = deque()
+
+    def add(self, total: int) -> None:
+        now = time.monotonic()
+        self._d.append((now, total))
+        while len(self._d) > 2 and now - self._d[0][0] > self.window_s:
+            self._d.popleft()
+
+    def rate(self) -> float:
+        if len(self._d) < 2:
+            return 0.0
+        (t0, n0), (t1, n1) = self._d[0], self._d[-1]
+        return (n1 - n0) / (t1 - t0) if t1 > t0 else 0.0
+
+
+# ----------------------------------------------------------------- entry points
+def entry_parser(role: str) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=f"python -m services.{role}", description=f"SAGE {role} service")
+    p.add_argument("--config", required=True, help="resolved run config (RUN.json)")
+    if role == "actor":
+        p.add_argument("--actor-id", type=int, required=True)
+    p.add_argument("--log-level", default="INFO")
+    return p
+
+
+def run_entry(role: str, make_service, argv=None) -> int:
+    """Parse args, install signal handlers, open the Zenoh session (after start,
+    never inherited through fork), run the service loop, close cleanly."""
+    args = entry_parser(role).parse_args(argv)
+    logging.basicConfig(level=args.log_level, format=f"%(asctime)s {role} %(levelname)s %(name)s: %(message)s")
+    cfg = TrainConfig.load(args.config)
+    stop = threading.Event()
+
+    def on_signal(signum, _frame):
+        log.info("signal %d: stopping", signum)
+        stop.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    registry = CollectorRegistry()
+    member = getattr(args, "actor_id", 0)
+    port = {"shield": cfg.ports.shield, "learner": cfg.ports.learner}.get(
+        role, cfg.ports.actor_base + member if cfg.ports.actor_base else 0)
+    server = serve_metrics(port, registry)
+    bus = Bus.open(connect=cfg.transport.connect, listen=cfg.transport.listen, mode=cfg.transport.mode)
+    try:
+        service = make_service(cfg, bus, member, registry, stop)
+        return int(service.run() or 0)
+    finally:
+        bus.close()
+        if server is not None:
+            server.shutdown()

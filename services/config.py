@@ -1,0 +1,198 @@
+"""The one source of defaults for a training run and its services.
+
+``TrainConfig`` is written resolved to ``<run_dir>/config.json`` by
+``sage train`` and read back by every service entry point
+(``python -m services.<role> --config RUN.json``). The environment and
+algorithm configs belong to their owners (``common.env.EnvConfig``,
+``common.algos.AlgoConfig``); this file only carries their overrides and, in
+the resolved JSON, their full field values.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import secrets
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from common.keys import check_id
+
+METHODS = ("happo", "happo_cbf", "talo_cbf", "sail_cbf", "sage")
+
+
+@dataclass
+class TransportConfig:
+    """Zenoh endpoints. In-process mode ignores them (no network at all)."""
+
+    mode: str = "peer"
+    connect: list[str] = field(default_factory=list)   # e.g. ["tcp/10.0.0.1:7447"] (a router)
+    listen: list[str] = field(default_factory=list)    # e.g. ["tcp/0.0.0.0:0"]
+
+
+@dataclass
+class PortsConfig:
+    """Prometheus ports; 0 disables. Actor ``i`` uses ``actor_base + i``."""
+
+    learner: int = 0
+    shield: int = 0
+    actor_base: int = 0
+    inprocess: int = 0   # the single registry of `sage train --mode inprocess`
+
+
+@dataclass
+class ShieldConfig:
+    max_batch: int = 256          # QP rows per solve_cbf_qp call
+    window_s: float = 0.002       # wait at most this long for more requests once one arrived
+    backend: str = "default"      # common.qp.BACKENDS name
+
+
+@dataclass
+class ActorConfig:
+    shield_timeout_s: float = 1.0      # one query; no answer -> retry (nothing executed)
+    unhealthy_after_s: float = 10.0    # no shield answer this long -> status "unhealthy"
+    exit_on_unhealthy: bool = False    # supervised mode: exit(3) so the supervisor sees it
+    params_wait_s: float = 60.0        # max wait for the first parameters before unhealthy
+
+
+@dataclass
+class TrainConfig:
+    run_id: str = ""                   # filled with a fresh id by resolve()
+    scenario: str = "narrow_gate"
+    method: str = "sage"
+    actors: int = 1
+    envs_per_actor: int = 4            # K
+    chunk_len: int = 32                # T: steps per trajectory chunk
+    chunks_per_update: int = 0         # 0 -> one chunk per actor
+    updates: int = 10                  # budget in learner updates ...
+    minutes: float | None = None       # ... or wall-clock minutes (whichever first)
+    max_lag: int = 1                   # accept chunks from versions >= current - max_lag
+    seed: int = 0
+    run_dir: str = ""                  # filled by resolve(): runs/<run_id>
+    mode: str = "inprocess"            # inprocess | supervised
+    checkpoint_every: int = 5          # updates between checkpoints (and at the end)
+    checkpoint_keep: int = 3
+    resume: bool = True                # learner resumes from run_dir/checkpoints if present
+    status_period_s: float = 1.0
+    params_rebroadcast_s: float = 0.5
+    eval_episodes: int = 4             # final deterministic deployment eval (0 = skip)
+    eval_max_steps: int = 0            # 0 -> env default episode length
+    transport: TransportConfig = field(default_factory=TransportConfig)
+    ports: PortsConfig = field(default_factory=PortsConfig)
+    shield: ShieldConfig = field(default_factory=ShieldConfig)
+    actor: ActorConfig = field(default_factory=ActorConfig)
+    env: dict[str, Any] = field(default_factory=dict)    # common.env.EnvConfig overrides
+    algo: dict[str, Any] = field(default_factory=dict)   # common.algos.AlgoConfig overrides
+
+    # -------------------------------------------------------------- helpers
+    def validate(self) -> "TrainConfig":
+        check_id(self.run_id, "run id")
+        if self.method not in METHODS:
+            raise ValueError(f"method {self.method!r} not in {METHODS}")
+        if self.mode not in ("inprocess", "supervised"):
+            raise ValueError(f"mode {self.mode!r} must be inprocess or supervised")
+        for name in ("actors", "envs_per_actor", "chunk_len"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1")
+        if self.updates < 1 and not self.minutes:
+            raise ValueError("need a budget: updates >= 1 or minutes > 0")
+        if self.max_lag < 0 or self.chunks_per_update < 0:
+            raise ValueError("max_lag and chunks_per_update must be >= 0")
+        if self.shield.max_batch < 1 or self.shield.window_s < 0:
+            raise ValueError("shield.max_batch >= 1 and shield.window_s >= 0")
+        return self
+
+    @property
+    def batch_chunks(self) -> int:
+        return self.chunks_per_update or self.actors
+
+    def env_config(self):
+        from common.env.config import EnvConfig
+
+        overrides = dict(self.env)
+        overrides["scenario"] = self.scenario  # the run's scenario wins over a stale copy
+        return build_dataclass(EnvConfig, overrides)
+
+    def algo_config(self):
+        from common.algos import AlgoConfig
+
+        overrides = dict(self.algo)
+        overrides.setdefault("seed", self.seed)
+        return build_dataclass(AlgoConfig, overrides)
+
+    def resolve(self) -> "TrainConfig":
+        """Fill run id / run dir and expand env/algo overrides to full values
+        (when their owners' modules are importable)."""
+        if not self.run_id:
+            self.run_id = time.strftime("%Y%m%d-%H%M%S") + "-" + secrets.token_hex(3)
+        if not self.run_dir:
+            self.run_dir = str(Path("runs") / self.run_id)
+        for attr, make in (("env", self.env_config), ("algo", self.algo_config)):
+            try:
+                cfg = make()
+            except ImportError:
+                continue  # owner module not available in this checkout; keep overrides
+            setattr(self, attr, json.loads(json.dumps(dataclasses.asdict(cfg), default=_json_default)))
+        return self.validate()
+
+    def to_json(self) -> str:
+        return json.dumps(dataclasses.asdict(self), indent=2, sort_keys=True, default=_json_default)
+
+    def save(self, path: str | Path) -> Path:
+        p = Path(path)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text(self.to_json() + "\n")
+        return p
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TrainConfig":
+        d = dict(d)
+        nested = {"transport": TransportConfig, "ports": PortsConfig,
+                  "shield": ShieldConfig, "actor": ActorConfig}
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown config keys {sorted(unknown)}")
+        for k, typ in nested.items():
+            if k in d and isinstance(d[k], dict):
+                sub_known = {f.name for f in dataclasses.fields(typ)}
+                bad = set(d[k]) - sub_known
+                if bad:
+                    raise ValueError(f"unknown {k} config keys {sorted(bad)}")
+                d[k] = typ(**d[k])
+        return cls(**d).validate()
+
+    @classmethod
+    def load(cls, path: str | Path) -> "TrainConfig":
+        return cls.from_dict(json.loads(Path(path).read_text()))
+
+
+def build_dataclass(cls, values: dict):
+    """``cls(**values)`` after turning JSON lists/maps back into the tuple and
+    nested-dataclass fields of ``cls`` (the resolved config is JSON)."""
+    out = {}
+    by_name = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = set(values) - set(by_name)
+    if unknown:
+        raise ValueError(f"unknown {cls.__name__} keys {sorted(unknown)}")
+    for name, v in values.items():
+        f = by_name[name]
+        default = f.default if f.default is not dataclasses.MISSING else (
+            f.default_factory() if f.default_factory is not dataclasses.MISSING else None)
+        if dataclasses.is_dataclass(default) and isinstance(v, dict):
+            v = build_dataclass(type(default), v)
+        elif isinstance(default, tuple) and isinstance(v, list):
+            v = tuple(v)
+        out[name] = v
+    return cls(**out)
+
+
+def _json_default(o):
+    if isinstance(o, (tuple, set)):
+        return list(o)
+    if dataclasses.is_dataclass(o):
+        return dataclasses.asdict(o)
+    if hasattr(o, "tolist"):
+        return o.tolist()
+    return str(o)

@@ -1,0 +1,268 @@
+"""Learner service: on-policy batches from trajectory chunks with bounded
+staleness, ``Method.update``, versioned parameter broadcasts, atomic
+checkpoints and resume, per-update metrics as JSONL + CSV.
+
+Staleness: a chunk whose oldest parameter version is below
+``version - max_lag`` is dropped (counted as ``stale``); a chunk made with
+another learner incarnation's parameters (before a restart) is dropped
+(``incarnation``). A batch is ``batch_chunks`` chunks concatenated along the
+env axis (``common.wire.traj_batch``).
+"""
+from __future__ import annotations
+
+import csv
+import json
+import queue
+import secrets
+import time
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from common import keys
+from common.checkpoint import load_latest, save_checkpoint
+from common.wire import traj_batch
+from services.base import RateMeter, Service
+
+
+class MetricsLog:
+    """Per-update rows to ``metrics.jsonl`` and ``metrics.csv`` (CSV is
+    rewritten when a new column appears, so every row has every column)."""
+
+    def __init__(self, run_dir: str | Path):
+        self.dir = Path(run_dir)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.jsonl = self.dir / "metrics.jsonl"
+        self.csv = self.dir / "metrics.csv"
+        self.rows: list[dict] = []
+        if self.jsonl.exists():  # resume: keep the earlier rows in the CSV too
+            self.rows = [json.loads(line) for line in self.jsonl.read_text().splitlines() if line.strip()]
+        self.columns: list[str] = []
+        for r in self.rows:
+            self.columns += [k for k in r if k not in self.columns]
+
+    def append(self, row: dict) -> None:
+        row = {k: (float(v) if isinstance(v, (np.floating, np.integer)) else v) for k, v in row.items()}
+        self.rows.append(row)
+        with open(self.jsonl, "a") as f:
+            f.write(json.dumps(row) + "\n")
+        new = [k for k in row if k not in self.columns]
+        if new or not self.csv.exists():
+            self.columns += new
+            with open(self.csv, "w", newline="") as f:
+                w = csv.DictWriter(f, fieldnames=self.columns)
+                w.writeheader()
+                w.writerows(self.rows)
+        else:
+            with open(self.csv, "a", newline="") as f:
+                csv.DictWriter(f, fieldnames=self.columns).writerow(row)
+
+
+def _default_method(cfg):
+    from common.algos import make_method
+    from common.env import BatchEnv
+
+    probe = BatchEnv(cfg.env_config(), 1, seed=cfg.seed)  # only for obs/state dims
+    return make_method(cfg.method, cfg.algo_config(), probe.obs_dim, probe.state_dim)
+
+
+def _episode_summary(episodes: list[dict]) -> dict:
+    if not episodes:
+        return {"episodes": 0}
+    out = {"episodes": len(episodes)}
+    for k in ("success", "return", "collision_steps", "length", "drop"):
+        vals = [e[k] for e in episodes if k in e]
+        if vals:
+            out[f"ep_{k}_mean"] = float(np.mean(vals))
+    return out
+
+
+class LearnerService(Service):
+    role = "learner"
+
+    def __init__(self, cfg, bus, member_id=0, registry=None, stop=None, method=None):
+        super().__init__(cfg, bus, member_id, registry, stop)
+        self.method = method
+        self.incarnation = secrets.token_hex(6)
+        self.version = 0
+        self.updates = 0
+        self.env_steps = 0
+        self.chunks: queue.Queue[bytes] = queue.Queue()
+        self.pending: deque[dict] = deque()
+        self.counts = {"used": 0, "stale": 0, "incarnation": 0, "shape": 0}
+        self.steps_rate = RateMeter()
+        self.recent_success: deque[float] = deque(maxlen=100)
+        self.run_dir = Path(cfg.run_dir)
+        self.ckpt_dir = self.run_dir / "checkpoints"
+        self.resumed_from: int | None = None
+        self._t_start = time.monotonic()
+        self._t_params = -1e9
+        self.log_rows: MetricsLog | None = None
+
+    # ------------------------------------------------------------- status
+    def status_fields(self) -> dict:
+        sr = float(np.mean(self.recent_success)) if self.recent_success else None
+        return {"version": self.version, "env_steps": self.env_steps, "updates": self.updates,
+                "env_steps_per_s": self.steps_rate.rate(), "success_rate": sr,
+                "extra": {f"chunks_{k}": float(v) for k, v in self.counts.items()}}
+
+    # ------------------------------------------------------------- params / checkpoints
+    def publish_params(self) -> None:
+        settings = {k: float(v) for k, v in self.method.actor_settings(self.progress()).items()}
+        self.send(keys.params(self.cfg.run_id), "params", {
+            "version": self.version, "incarnation": self.incarnation, "method": self.cfg.method,
+            "params": {k: np.asarray(v) for k, v in self.method.policy_params().items()
+                       if np.asarray(v).dtype.kind in "fiub"},
+            "settings": settings})
+        self._t_params = time.monotonic()
+        self.m.version.labels(**self.labels).set(self.version)
+
+    def checkpoint(self) -> Path:
+        np_state = np.random.get_state()
+        payload = {
+            "method": self.method.state_dict(),
+            "version": self.version,
+            "updates": self.updates,
+            "env_steps": self.env_steps,
+            "counts": dict(self.counts),
+            "rng": {"torch": torch.get_rng_state(),
+                    "numpy_mt19937": torch.from_numpy(np_state[1].astype(np.int64)),
+                    "numpy_pos": int(np_state[2])},
+            "config": self.cfg.to_json(),
+            "time": time.time(),
+        }
+        return save_checkpoint(self.ckpt_dir, self.version, payload, keep=self.cfg.checkpoint_keep)
+
+    def try_resume(self) -> bool:
+        ck = load_latest(self.ckpt_dir) if self.cfg.resume else None
+        if ck is None:
+            return False
+        self.method.load_state_dict(ck["method"])
+        torch.set_rng_state(ck["rng"]["torch"])
+        np.random.set_state(("MT19937", ck["rng"]["numpy_mt19937"].numpy().astype(np.uint32),
+                             ck["rng"]["numpy_pos"], 0, 0.0))
+        self.resumed_from = int(ck["version"])
+        # a fresh version for the restored policy: versions only ever increase
+        self.version = self.resumed_from + 1
+        self.updates = int(ck["updates"])
+        self.env_steps = int(ck["env_steps"])
+        self.counts.update({k: int(v) for k, v in ck["counts"].items()})
+        self.log.info("resumed from checkpoint version %d (update %d)", self.resumed_from, self.updates)
+        return True
+
+    # ------------------------------------------------------------- budget
+    def progress(self) -> float:
+        p = self.updates / self.cfg.updates if self.cfg.updates > 0 else 0.0
+        if self.cfg.minutes:
+            p = max(p, (time.monotonic() - self._t_start) / (60.0 * self.cfg.minutes))
+        return float(min(max(p, 0.0), 1.0))
+
+    def budget_done(self) -> bool:
+        if self.cfg.updates > 0 and self.updates >= self.cfg.updates:
+            return True
+        return bool(self.cfg.minutes) and time.monotonic() - self._t_start >= 60.0 * self.cfg.minutes
+
+    # ------------------------------------------------------------- chunks
+    def _on_traj(self, _key: str, payload: bytes) -> None:
+        self.chunks.put(payload)  # decode on the learner thread, not Zenoh's
+
+    def _admit(self, body: dict) -> None:
+        if body["incarnation"] != self.incarnation:
+            self._drop("incarnation")
+        elif body["version"] < self.version - self.cfg.max_lag:
+            self._drop("stale")
+        else:
+            self.pending.append(body)
+
+    def _drop(self, why: str) -> None:
+        self.counts[why] += 1
+        self.m.chunks.labels(**self.labels, outcome=why).inc()
+
+    def drain(self) -> None:
+        while True:
+            try:
+                payload = self.chunks.get_nowait()
+            except queue.Empty:
+                return
+            msg = self.decode(payload, "traj")
+            if msg is not None:
+                self._admit(msg.body)
+
+    def try_update(self) -> bool:
+        # chunks may have become stale while waiting (an update happened)
+        fresh = [b for b in self.pending if b["version"] >= self.version - self.cfg.max_lag]
+        for _ in range(len(self.pending) - len(fresh)):
+            self._drop("stale")
+        self.pending = deque(fresh)
+        n = self.cfg.batch_chunks
+        if len(self.pending) < n:
+            return False
+        bodies = [self.pending.popleft() for _ in range(n)]
+        try:
+            batch = traj_batch(bodies)
+        except ValueError as exc:
+            self.log.warning("dropping %d chunks: %s", n, exc)
+            for _ in bodies:
+                self._drop("shape")
+            return False
+        for _ in bodies:
+            self.counts["used"] += 1
+            self.m.chunks.labels(**self.labels, outcome="used").inc()
+        steps = int(batch["reward"].size)
+        episodes = [e for b in bodies for e in b["episodes"]]
+        for e in episodes:
+            if "success" in e:
+                self.recent_success.append(e["success"])
+        lags = [self.version - b["version"] for b in bodies]
+        t0 = time.perf_counter()
+        diag = self.method.update(batch, self.progress())
+        dt = time.perf_counter() - t0
+        self.updates += 1
+        self.version += 1
+        self.env_steps += steps
+        self.steps_rate.add(self.env_steps)
+        self.m.updates.labels(**self.labels).inc()
+        self.m.update_seconds.labels(**self.labels).observe(dt)
+        row = {"update": self.updates, "version": self.version, "env_steps": self.env_steps,
+               "time_s": time.monotonic() - self._t_start, "update_s": dt, "progress": self.progress(),
+               "batch_T": int(batch["reward"].shape[0]), "batch_K": int(batch["reward"].shape[1]),
+               "lag_max": int(max(lags)), "chunks_stale": self.counts["stale"],
+               "reward_mean": float(batch["reward"].mean()),
+               "success_rate_recent": float(np.mean(self.recent_success)) if self.recent_success else None}
+        row.update(_episode_summary(episodes))
+        row.update({k: float(v) for k, v in diag.items() if np.isscalar(v)})
+        self.log_rows.append(row)
+        self.publish_params()
+        if self.updates % self.cfg.checkpoint_every == 0:
+            self.checkpoint()
+        return True
+
+    # ------------------------------------------------------------- loop
+    def run(self) -> int:
+        if self.method is None:
+            self.method = _default_method(self.cfg)
+        self.log_rows = MetricsLog(self.run_dir)
+        self.try_resume()
+        self.bus.subscribe(keys.traj_all(self.cfg.run_id), self._on_traj)
+        self.listen_control()
+        self.state = "running"
+        self.publish_params()
+        self.publish_status(force=True)
+        while not self.stop.is_set() and not self.budget_done():
+            self.drain()
+            if not self.try_update():
+                self.stop.wait(0.005)
+            if time.monotonic() - self._t_params > self.cfg.params_rebroadcast_s:
+                self.publish_params()  # late joiners and lost samples
+            self.publish_status()
+        self.checkpoint()
+        self.state = "done" if self.budget_done() else "stopped"
+        self.publish_status(force=True)
+        return 0
+
+    def summary(self) -> dict:
+        return {"version": self.version, "updates": self.updates, "env_steps": self.env_steps,
+                "chunks": dict(self.counts), "resumed_from": self.resumed_from,
+                "rejected": dict(self.rejected), "incarnation": self.incarnation}
