@@ -1,0 +1,407 @@
+"""Affine safety rows ``C(x) a >= c(x)`` (Eq. joint_safety_rows) from one-step discrete CBFs.
+
+The environment calls :func:`build_rows` every control step with ``x = Φ(s)``
+(a :class:`SafetyGeometry`, batched over K envs) and hands the rows to the
+joint CBF-QP shield (Eq. qpshield). Every row is the linearization of a
+one-step discrete-time CBF condition
+
+    h(x⁺) >= (1 - α) h(x),      x⁺ = F(x) + B(x) a                   (*)
+
+under the linear one-step predictor below. As the paper states (Sec. III-B),
+the guarantee is *predictor-level*: rows are conservative lower bounds of (*)
+for the predicted state; how honest the predictor is about the real MuJoCo
+step is measured by :func:`measure_honesty`, not assumed.
+
+One-step predictor (linear in the stacked action ``a in [-1, 1]^9``):
+  * carrier ``i`` moves by ``d_i = max_step_xy R(ψ_i) [Δx_i, Δy_i]`` and turns
+    by ``max_step_yaw Δψ_i``;
+  * the payload follows the least-squares rigid fit of the three carrier
+    displacements applied at the grasps: translation ``t = mean_i d_i`` and
+    small rotation ``δθ = Σ r_i × d_i / Σ |r_i|²`` about the grasp centroid
+    ``g`` (``r_i`` = grasp ``i`` minus ``g``; ``Σ r_i = 0`` decouples the two),
+    so a payload point ``p`` moves to ``p + t + δθ J (p - g)`` with ``J`` the
+    90° rotation. For an exactly rigid carrier motion by angle ``θ`` this is
+    the exact motion up to ``O(θ²)`` (``δθ = sin θ``).
+
+Row kinds (slots are laid out ``[carrier-wall | payload-wall | formation]``):
+  0. carrier-wall: ``h = sd(p_i, box) - carrier_radius``;
+  1. payload-wall: ``h = sd(p_j, box) - payload_margin`` for payload boundary
+     points, whose predicted motion couples all three carriers;
+  2. formation: for each pair ``(i, k)`` with distance ``D`` and rest distance
+     ``D0``, ``h_lo = D - (D0 - grasp_tol)`` and ``h_hi = (D0 + grasp_tol) - D``.
+
+Wall rows use the supporting half-plane at the closest point ``q`` of the box
+with outward unit normal ``n`` (``(p - q)/|p - q|`` outside, the normal of the
+nearest face inside or on the boundary):
+
+    n · (p⁺ - q) - r >= (1 - α) h      <=>      (n^T B) a >= -α h
+
+(using ``n · (p - q) = sd(p)`` in both cases). Why this is conservative: the
+signed distance to a *convex* set is a convex function of the point, and
+``n`` is a (sub)gradient of it at ``p``, so for every ``y``
+
+    sd(y) >= sd(p) + n · (y - p) = n · (y - q).
+
+Hence any action satisfying the row gives ``sd(p⁺) - r >= (1 - α) h`` at the
+predicted point: the half-plane is an inner approximation of the box exterior.
+The formation lower row is conservative for the same reason (``|·|`` is
+convex); the upper row (``D⁺ <= ...``) is only first-order accurate, with error
+``|Δ_⊥|² / (2D)`` for the relative displacement ``Δ_⊥`` perpendicular to the
+pair; with centimetre steps and metre spacings that is far below ``grasp_tol``.
+
+No row divides by ``h``: if a barrier is already negative (a violation), its
+row still asks for the recovery ``h⁺ >= (1 - α) h`` (i.e. at least an ``α``
+fraction of the violation is undone, predictor-level), which may be infeasible
+inside the action box; the QP's slack answer handles that. Rows are not
+normalized here (that is ``common.sail.normalize_rows``); rows whose
+coefficients vanish are masked instead of emitted.
+
+Budget split for ``max_rows = M`` slots: the 6 formation rows always get their
+slots; carrier-wall rows get ``3 * walls_per_carrier`` slots; payload-wall rows
+get the rest, ``M - 6 - 3 * walls_per_carrier``. Candidates of a kind are, per
+entity (carrier or payload point), its ``walls_per_*`` nearest walls with
+``h <= search_radius``; if a kind has more candidates than slots, the
+smallest-``h`` ones are kept. Rows within a wall kind are ordered by ``h``
+ascending and padded at the end of the kind's block (``row_mask`` False,
+zero coefficients, ``h = 0``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+N_CARRIERS = 3
+ACT_DIM = 3 * N_CARRIERS
+PAIRS = ((0, 1), (0, 2), (1, 2))
+N_FORMATION_ROWS = 2 * len(PAIRS)
+KIND_CARRIER_WALL, KIND_PAYLOAD_WALL, KIND_FORMATION = 0, 1, 2
+_EPS = 1e-12
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    """Safety model parameters (one source of defaults; lengths in metres, angles in rad)."""
+
+    alpha: float = 0.2               # discrete CBF rate in h(x⁺) >= (1-α) h(x), in (0, 1]
+    max_rows: int = 34               # M
+    carrier_radius: float = 0.30     # carrier footprint as a disc
+    payload_margin: float = 0.05     # clearance kept by payload boundary points
+    walls_per_carrier: int = 4       # nearest walls per carrier (also sets the carrier budget)
+    walls_per_point: int = 2         # nearest walls per payload boundary point
+    search_radius: float = 1.0       # walls with h above this are not candidates
+    grasp_tol: float = 0.05          # allowed pair-distance deviation from rest
+    max_step_xy: float = 0.05        # carrier displacement per unit action per control step
+    max_step_yaw: float = 0.10       # carrier turn per unit action per control step
+
+    def __post_init__(self):
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if not np.isfinite(v):
+                raise ValueError(f"SafetyConfig.{f.name} must be finite, got {v!r}")
+        if not 0.0 < self.alpha <= 1.0:
+            raise ValueError(f"SafetyConfig.alpha must be in (0, 1], got {self.alpha}")
+        for name in ("carrier_radius", "payload_margin", "grasp_tol"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"SafetyConfig.{name} must be >= 0, got {getattr(self, name)}")
+        for name in ("search_radius", "max_step_xy", "max_step_yaw"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"SafetyConfig.{name} must be > 0, got {getattr(self, name)}")
+        for name in ("max_rows", "walls_per_carrier", "walls_per_point"):
+            v = getattr(self, name)
+            if int(v) != v or v < 0:
+                raise ValueError(f"SafetyConfig.{name} must be a non-negative integer, got {v!r}")
+        if self.payload_budget < 0:
+            raise ValueError(
+                f"SafetyConfig.max_rows={self.max_rows} is smaller than the {N_FORMATION_ROWS} "
+                f"formation rows plus 3*walls_per_carrier={3 * self.walls_per_carrier} carrier rows")
+
+    @property
+    def carrier_budget(self) -> int:
+        return N_CARRIERS * int(self.walls_per_carrier)
+
+    @property
+    def payload_budget(self) -> int:
+        return int(self.max_rows) - N_FORMATION_ROWS - self.carrier_budget
+
+
+@dataclass
+class SafetyGeometry:
+    """``x = Φ(s)``: the physical variables of K envs that the safety model needs."""
+
+    carrier_xy: np.ndarray            # [K,3,2] carrier centers (world)
+    carrier_yaw: np.ndarray           # [K,3]
+    payload_xy: np.ndarray            # [K,2] payload frame origin (world)
+    payload_yaw: np.ndarray           # [K]
+    payload_points_local: np.ndarray  # [P,2] boundary points in the payload frame
+    grasp_local: np.ndarray           # [3,2] grasp points in the payload frame
+    pair_rest: np.ndarray             # [3] rest distances of pairs (0,1),(0,2),(1,2)
+
+    def __post_init__(self):
+        for f in fields(self):
+            arr = np.asarray(getattr(self, f.name), dtype=np.float64)
+            if not np.all(np.isfinite(arr)):
+                raise ValueError(f"SafetyGeometry.{f.name} contains NaN or Inf")
+            setattr(self, f.name, arr)
+        K = self.carrier_xy.shape[0] if self.carrier_xy.ndim == 3 else -1
+        expect = {
+            "carrier_xy": (K, N_CARRIERS, 2), "carrier_yaw": (K, N_CARRIERS),
+            "payload_xy": (K, 2), "payload_yaw": (K,),
+            "grasp_local": (N_CARRIERS, 2), "pair_rest": (len(PAIRS),),
+        }
+        for name, shape in expect.items():
+            if getattr(self, name).shape != shape:
+                raise ValueError(f"SafetyGeometry.{name} has shape {getattr(self, name).shape}, "
+                                 f"expected {shape} (K from carrier_xy [K,3,2])")
+        if self.payload_points_local.ndim != 2 or self.payload_points_local.shape[1] != 2:
+            raise ValueError("SafetyGeometry.payload_points_local must be [P,2], "
+                             f"got {self.payload_points_local.shape}")
+
+    @property
+    def num_envs(self) -> int:
+        return self.carrier_xy.shape[0]
+
+
+# ----------------------------------------------------------------------------- geometry helpers
+
+def _rot(theta: np.ndarray) -> np.ndarray:
+    """Rotation matrices [..., 2, 2] for angles [...]."""
+    c, s = np.cos(theta), np.sin(theta)
+    return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+
+
+def _perp(v: np.ndarray) -> np.ndarray:
+    """J v: rotate 2-vectors [..., 2] by +90 degrees."""
+    return np.stack([-v[..., 1], v[..., 0]], -1)
+
+
+def payload_points_world(geom: SafetyGeometry) -> np.ndarray:
+    """Payload boundary points in world coordinates [K,P,2]."""
+    R = _rot(geom.payload_yaw)                                   # [K,2,2]
+    return geom.payload_xy[:, None] + np.einsum("kab,pb->kpa", R, geom.payload_points_local)
+
+
+def grasp_world(geom: SafetyGeometry) -> np.ndarray:
+    """Grasp points in world coordinates [K,3,2]."""
+    R = _rot(geom.payload_yaw)
+    return geom.payload_xy[:, None] + np.einsum("kab,pb->kpa", R, geom.grasp_local)
+
+
+def _check_walls(walls: np.ndarray, K: int) -> np.ndarray:
+    """Walls as [K,W,5] float64 (a shared [W,5] array is broadcast)."""
+    walls = np.asarray(walls, dtype=np.float64)
+    if walls.ndim == 2:
+        walls = np.broadcast_to(walls, (K,) + walls.shape)
+    if walls.ndim != 3 or walls.shape[0] != K or walls.shape[2] != 5:
+        raise ValueError(f"walls must be [W,5] or [K,W,5] (cx, cy, hx, hy, yaw), got {walls.shape}")
+    if not np.all(np.isfinite(walls)):
+        raise ValueError("walls contain NaN or Inf")
+    if np.any(walls[..., 2:4] < 0):
+        raise ValueError("wall half-sizes hx, hy must be >= 0")
+    return walls
+
+
+def point_box_distance(p: np.ndarray, walls: np.ndarray):
+    """Signed distance of points to oriented boxes, with closest point and normal.
+
+    ``p [K,E,2]``, ``walls [K,W,5]`` -> ``sd, q, n`` of shapes ``[K,E,W]``,
+    ``[K,E,W,2]``, ``[K,E,W,2]``: ``sd`` is positive outside, ``q`` is the
+    closest boundary point and ``n`` the outward unit normal, ``(p - q)/|p - q|``
+    outside and the nearest face's normal inside or on the boundary (ties go to
+    the x-face, a valid subgradient either way). ``n · (p - q) = sd`` always.
+    """
+    center = walls[:, None, :, 0:2]                              # [K,1,W,2]
+    half = walls[:, None, :, 2:4]
+    R = _rot(walls[:, None, :, 4])                               # [K,1,W,2,2]
+    local = np.einsum("...ba,...b->...a", R, p[:, :, None, :] - center)  # R^T (p - c)
+    clamped = np.clip(local, -half, half)
+    diff = local - clamped
+    dist_out = np.linalg.norm(diff, axis=-1)
+    inside = dist_out == 0.0                                     # on or inside the box
+    # Inside: depth to the x- and y-faces; the nearest face gives q and n.
+    sign = np.where(local >= 0.0, 1.0, -1.0)
+    depth = half - np.abs(local)                                 # [...,2] >= 0 inside
+    use_x = depth[..., 0] <= depth[..., 1]
+    face_n = np.where(use_x[..., None], np.stack([sign[..., 0], 0 * sign[..., 0]], -1),
+                      np.stack([0 * sign[..., 1], sign[..., 1]], -1))
+    face_q = np.where(use_x[..., None], np.stack([sign[..., 0] * half[..., 0], local[..., 1]], -1),
+                      np.stack([local[..., 0], sign[..., 1] * half[..., 1]], -1))
+    safe = np.where(inside, 1.0, dist_out)
+    n_local = np.where(inside[..., None], face_n, diff / safe[..., None])
+    q_local = np.where(inside[..., None], face_q, clamped)
+    sd = np.where(inside, -np.min(depth, axis=-1), dist_out)
+    n = np.einsum("...ab,...b->...a", R, n_local)
+    q = center + np.einsum("...ab,...b->...a", R, q_local)
+    return sd, q, n
+
+
+# ----------------------------------------------------------------------------- predictor
+
+def predictor_matrices(geom: SafetyGeometry, cfg: SafetyConfig):
+    """The affine one-step predictor ``x⁺ = x + B a`` for the quantities the rows use.
+
+    Returns ``carrier_B [K,3,2,9]`` (carrier displacement), ``point_B [K,P,2,9]``
+    (payload point displacement) and ``theta_B [K,9]`` (payload rotation δθ).
+    """
+    K = geom.num_envs
+    carrier_B = np.zeros((K, N_CARRIERS, 2, ACT_DIM))
+    Rc = cfg.max_step_xy * _rot(geom.carrier_yaw)               # [K,3,2,2]
+    for i in range(N_CARRIERS):
+        carrier_B[:, i, :, 3 * i:3 * i + 2] = Rc[:, i]
+    g = grasp_world(geom)
+    r = g - g.mean(axis=1, keepdims=True)                        # [K,3,2], Σ r_i = 0
+    S = np.sum(r * r, axis=(1, 2))                                # Σ |r_i|²
+    if np.any(S <= _EPS):
+        raise ValueError("grasp points coincide: the payload rotation fit is undefined")
+    # least-squares rigid fit: t = mean d_i, δθ = Σ r_i × d_i / Σ |r_i|²  (r × d = (J r)·d)
+    trans_B = carrier_B.mean(axis=1)                              # [K,2,9]
+    theta_B = np.einsum("kia,kiab->kb", _perp(r), carrier_B) / S[:, None]
+    lever = _perp(payload_points_world(geom) - g.mean(axis=1, keepdims=True))  # J (p - g)
+    point_B = trans_B[:, None] + lever[..., None] * theta_B[:, None, None, :]
+    return carrier_B, point_B, theta_B
+
+
+def predict(geom: SafetyGeometry, a: np.ndarray, cfg: SafetyConfig) -> dict:
+    """One-step prediction for stacked actions ``a [K,9]``.
+
+    Returns ``carrier_xy [K,3,2]``, ``carrier_yaw [K,3]``, ``payload_points [K,P,2]``
+    (affine in ``a``), ``payload_theta [K]`` (δθ) and ``payload_translation [K,2]``.
+    """
+    a = np.asarray(a, dtype=np.float64)
+    if a.shape != (geom.num_envs, ACT_DIM) or not np.all(np.isfinite(a)):
+        raise ValueError(f"actions must be finite [K,{ACT_DIM}] with K={geom.num_envs}, got {a.shape}")
+    carrier_B, point_B, theta_B = predictor_matrices(geom, cfg)
+    return {
+        "carrier_xy": geom.carrier_xy + np.einsum("kiab,kb->kia", carrier_B, a),
+        "carrier_yaw": geom.carrier_yaw + cfg.max_step_yaw * a[:, 2::3],
+        "payload_points": payload_points_world(geom) + np.einsum("kpab,kb->kpa", point_B, a),
+        "payload_theta": np.einsum("kb,kb->k", theta_B, a),
+        "payload_translation": np.einsum("kiab,kb->ka", carrier_B, a) / N_CARRIERS,
+    }
+
+
+# ----------------------------------------------------------------------------- barriers
+
+def _pair_terms(carrier_xy: np.ndarray):
+    """Pair distances [K,3] and unit vectors [K,3,2] for pairs (0,1),(0,2),(1,2)."""
+    i, k = np.array(PAIRS).T
+    diff = carrier_xy[:, i] - carrier_xy[:, k]
+    dist = np.linalg.norm(diff, axis=-1)
+    unit = diff / np.where(dist > _EPS, dist, 1.0)[..., None]
+    return dist, unit
+
+
+def barrier_values(geom: SafetyGeometry, walls: np.ndarray, cfg: SafetyConfig) -> dict:
+    """True barrier values at a state (exact distances, no linearization).
+
+    ``carrier_wall [K,3,W]``, ``payload_wall [K,P,W]``, ``formation [K,3,2]``
+    (``(h_lo, h_hi)`` per pair) and ``min [K]`` over all of them.
+    """
+    walls = _check_walls(walls, geom.num_envs)
+    K = geom.num_envs
+    sd_c = point_box_distance(geom.carrier_xy, walls)[0] - cfg.carrier_radius
+    sd_p = point_box_distance(payload_points_world(geom), walls)[0] - cfg.payload_margin
+    dist, _ = _pair_terms(geom.carrier_xy)
+    form = np.stack([dist - (geom.pair_rest - cfg.grasp_tol),
+                     (geom.pair_rest + cfg.grasp_tol) - dist], -1)
+    mins = [form.reshape(K, -1).min(1)]
+    if walls.shape[1]:
+        mins += [sd_c.reshape(K, -1).min(1)]
+        if sd_p.size:
+            mins += [sd_p.reshape(K, -1).min(1)]
+    return {"carrier_wall": sd_c, "payload_wall": sd_p, "formation": form,
+            "min": np.min(np.stack(mins, -1), -1)}
+
+
+# ----------------------------------------------------------------------------- rows
+
+def _wall_rows(points, B, walls, margin, per_entity, budget, cfg):
+    """Wall rows of one kind: ``C [K,budget,9], c, mask, h, entity, wall``.
+
+    ``points [K,E,2]`` with predictor matrices ``B [K,E,2,9]``. Per entity the
+    ``per_entity`` smallest-h walls within ``search_radius`` are candidates; the
+    kind keeps its ``budget`` smallest-h candidates, sorted ascending.
+    """
+    K, E = points.shape[:2]
+    W = walls.shape[1]
+    out_C = np.zeros((K, budget, ACT_DIM))
+    out_c = np.zeros((K, budget))
+    out_h = np.zeros((K, budget))
+    out_mask = np.zeros((K, budget), dtype=bool)
+    out_ent = np.full((K, budget), -1, dtype=np.int64)
+    out_wall = np.full((K, budget), -1, dtype=np.int64)
+    take = min(per_entity, W)
+    if budget == 0 or take == 0 or E == 0:
+        return out_C, out_c, out_mask, out_h, out_ent, out_wall
+    sd, q, n = point_box_distance(points, walls)
+    h = sd - margin                                               # [K,E,W]
+    near = np.argsort(h, axis=2, kind="stable")[:, :, :take]      # per-entity nearest walls
+    h_near = np.take_along_axis(h, near, 2).reshape(K, E * take)
+    key = np.where(h_near <= cfg.search_radius, h_near, np.inf)
+    order = np.argsort(key, axis=1, kind="stable")[:, :budget]    # smallest h per kind
+    n_kept = order.shape[1]
+    ent = order // take
+    wall = np.take_along_axis(near.reshape(K, E * take), order, 1)
+    kk = np.arange(K)[:, None]
+    n_sel = n[kk, ent, wall]                                      # [K,m,2]
+    B_sel = B[kk, ent]                                            # [K,m,2,9]
+    h_sel = h[kk, ent, wall]
+    C = np.einsum("kma,kmab->kmb", n_sel, B_sel)                  # n^T B
+    mask = np.isfinite(np.take_along_axis(key, order, 1)) & (np.abs(C).max(-1) > _EPS)
+    out_C[:, :n_kept] = np.where(mask[..., None], C, 0.0)
+    out_c[:, :n_kept] = np.where(mask, -cfg.alpha * h_sel, 0.0)   # n·(p⁺-q) - r >= (1-α)h
+    out_h[:, :n_kept] = np.where(mask, h_sel, 0.0)
+    out_mask[:, :n_kept] = mask
+    out_ent[:, :n_kept] = np.where(mask, ent, -1)
+    out_wall[:, :n_kept] = np.where(mask, wall, -1)
+    return out_C, out_c, out_mask, out_h, out_ent, out_wall
+
+
+def _formation_rows(geom, carrier_B, cfg):
+    """Two rows per pair keeping |D - D0| <= grasp_tol, linearized along the pair unit vector."""
+    dist, unit = _pair_terms(geom.carrier_xy)                     # [K,3], [K,3,2]
+    i, k = np.array(PAIRS).T
+    rel_B = carrier_B[:, i] - carrier_B[:, k]                     # [K,3,2,9]
+    dD = np.einsum("kpa,kpab->kpb", unit, rel_B)                  # D⁺ ≈ D + dD a
+    h_lo = dist - (geom.pair_rest - cfg.grasp_tol)
+    h_hi = (geom.pair_rest + cfg.grasp_tol) - dist
+    C = np.stack([dD, -dD], 2).reshape(-1, N_FORMATION_ROWS, ACT_DIM)
+    h = np.stack([h_lo, h_hi], 2).reshape(-1, N_FORMATION_ROWS)
+    mask = np.repeat(dist > _EPS, 2, axis=1) & (np.abs(C).max(-1) > _EPS)
+    C = np.where(mask[..., None], C, 0.0)
+    c = np.where(mask, -cfg.alpha * h, 0.0)                       # h + C a >= (1-α) h
+    ent = np.repeat(np.arange(len(PAIRS)), 2)[None].repeat(len(C), 0)
+    return C, c, mask, h, ent
+
+
+def build_rows(geom: SafetyGeometry, walls: np.ndarray, cfg: SafetyConfig):
+    """Affine rows ``C a >= c`` (Eq. joint_safety_rows) for the next stacked action.
+
+    Returns ``C [K,M,9]``, ``c [K,M]``, ``row_mask [K,M]`` and ``info`` with
+    ``h [K,M]`` (barrier value of each row at ``x``), ``kind [K,M]`` (0
+    carrier-wall, 1 payload-wall, 2 formation), ``entity [K,M]`` (carrier,
+    payload point or pair index; -1 on padding) and ``wall [K,M]`` (-1 if none).
+    See the module docstring for the derivation, conservativeness and budget.
+    """
+    if not isinstance(geom, SafetyGeometry):
+        raise TypeError(f"geom must be a SafetyGeometry, got {type(geom).__name__}")
+    K = geom.num_envs
+    walls = _check_walls(walls, K)
+    carrier_B, point_B, _ = predictor_matrices(geom, cfg)
+    carrier = _wall_rows(geom.carrier_xy, carrier_B, walls, cfg.carrier_radius,
+                         int(cfg.walls_per_carrier), cfg.carrier_budget, cfg)
+    payload = _wall_rows(payload_points_world(geom), point_B, walls, cfg.payload_margin,
+                         int(cfg.walls_per_point), cfg.payload_budget, cfg)
+    form = _formation_rows(geom, carrier_B, cfg)
+    C = np.concatenate([carrier[0], payload[0], form[0]], 1)
+    c = np.concatenate([carrier[1], payload[1], form[1]], 1)
+    mask = np.concatenate([carrier[2], payload[2], form[2]], 1)
+    kinds = np.repeat([KIND_CARRIER_WALL, KIND_PAYLOAD_WALL, KIND_FORMATION],
+                      [cfg.carrier_budget, cfg.payload_budget, N_FORMATION_ROWS])
+    info = {
+        "h": np.concatenate([carrier[3], payload[3], form[3]], 1),
+        "kind": np.broadcast_to(kinds, (K, len(kinds))).copy(),
+        "entity": np.concatenate([carrier[4], payload[4], form[4]], 1),
+        "wall": np.concatenate([carrier[5], payload[5], np.full((K, N_FORMATION_ROWS), -1)], 1),
+    }
+    return C, c, mask, info
