@@ -193,7 +193,7 @@ def _enc_array(a: np.ndarray) -> dict:
     name = _WIRE_NAME.get(dt)
     if name is None:
         raise TypeError(f"dtype {a.dtype} not in wire allow-list {sorted(ALLOWED_DTYPES)}")
-    a = np.ascontiguousarray(a, dtype=ALLOWED_DTYPES[name])
+    a = np.asarray(a, dtype=ALLOWED_DTYPES[name], order="C")  # keeps 0-d arrays 0-d
     return {"nd": name, "shape": list(a.shape), "data": a.tobytes()}
 
 

@@ -1,0 +1,95 @@
+"""Atomic checkpoints and learner resume."""
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).parent))
+from services_fakes import FakeMethod  # noqa: E402
+
+from common import checkpoint as ck  # noqa: E402
+from common import keys, wire  # noqa: E402
+from common.transport import Bus  # noqa: E402
+from services.actor.service import ActorService  # noqa: E402
+from services.config import TrainConfig  # noqa: E402
+from services.learner.service import LearnerService  # noqa: E402
+
+
+def test_save_is_weights_only_loadable_and_keeps_newest(tmp_path):
+    for v in range(5):
+        ck.save_checkpoint(tmp_path, v, {"w": torch.full((2,), float(v)), "version": v, "cfg": "{}"}, keep=2)
+    assert [p.name for p in ck.list_checkpoints(tmp_path)] == ["ckpt_00000003.pt", "ckpt_00000004.pt"]
+    d = torch.load(ck.checkpoint_path(tmp_path, 4), weights_only=True)
+    assert d["version"] == 4 and torch.equal(d["w"], torch.full((2,), 4.0))
+
+
+def test_crash_during_write_leaves_previous_checkpoint_intact(tmp_path, monkeypatch):
+    ck.save_checkpoint(tmp_path, 1, {"version": 1})
+    real_save = torch.save
+
+    def crashing_save(obj, f):
+        real_save(obj, f)
+        f.truncate(10)  # half-written file, then the process "dies"
+        raise OSError("disk gone")
+
+    monkeypatch.setattr(torch, "save", crashing_save)
+    with pytest.raises(OSError):
+        ck.save_checkpoint(tmp_path, 2, {"version": 2})
+    monkeypatch.undo()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt_00000001.pt"]  # no temp left, no torn v2
+    assert ck.load_latest(tmp_path)["version"] == 1
+
+
+def test_load_latest_skips_a_corrupt_newest_file(tmp_path):
+    ck.save_checkpoint(tmp_path, 1, {"version": 1})
+    ck.checkpoint_path(tmp_path, 2).write_bytes(b"not a checkpoint")
+    (tmp_path / ".ckpt_x.tmp").write_bytes(b"partial")
+    assert ck.load_latest(tmp_path)["version"] == 1
+    assert ck.load_latest(tmp_path / "missing") is None
+
+
+def run_learner(cfg, bus, method):
+    learner = LearnerService(cfg, bus, 0, method=method)
+    # feed synthetic chunks from a fake actor thread until the budget is reached
+    from services_fakes import FakeBatchEnv, fake_propose
+
+    stop = threading.Event()
+    actor = ActorService(cfg, bus, 0, stop=stop, env=FakeBatchEnv(2), propose=fake_propose)
+    at = threading.Thread(target=actor.run, daemon=True)
+    at.start()
+    learner.run()
+    stop.set()
+    at.join(5)
+    return learner, actor
+
+
+def test_learner_resumes_from_checkpoint_and_version_keeps_increasing(tmp_path):
+    cfg = TrainConfig(run_id="ck", run_dir=str(tmp_path / "run"), updates=3, chunk_len=4, actors=1,
+                      envs_per_actor=2, checkpoint_every=1, method="happo").validate()
+    bus = Bus.open(inprocess=True)
+    try:
+        first, _ = run_learner(cfg, bus, FakeMethod())
+        assert first.version == 3 and first.updates == 3
+        saved = ck.load_latest(Path(cfg.run_dir) / "checkpoints")
+        assert saved["version"] == 3 and saved["method"]["n"] == 3
+        TrainConfig.from_dict(__import__("json").loads(saved["config"]))  # config round-trips
+
+        # restart with a larger budget: same run dir, fresh method object
+        cfg.updates = 5
+        restored = FakeMethod()
+        seen = []
+        bus.subscribe(keys.params(cfg.run_id), lambda k, p: seen.append(wire.decode(p, run_id="ck").body))
+        second, actor = run_learner(cfg, bus, restored)
+        assert second.resumed_from == 3
+        assert restored.n == 5                                  # method state was restored, then 2 updates
+        assert second.version == 6 and second.updates == 5     # 3 -> 4 (restored publish) -> 6
+        versions = [b["version"] for b in seen if b["incarnation"] == second.incarnation]
+        assert versions[0] == 4 and versions == sorted(versions)
+        # the actor adopted the restored learner's parameters (new incarnation)
+        assert actor.params["incarnation"] == second.incarnation
+        lines = (Path(cfg.run_dir) / "metrics.jsonl").read_text().splitlines()
+        assert len(lines) == 5
+    finally:
+        bus.close()
