@@ -1,0 +1,348 @@
+"""Hard oblique decision-tree actors (Sec. III-B, Eqs. hard_gate, hard_tree_policy, st_gate).
+
+One tree per carrier, no parameter sharing. Nodes are in heap order: root 0, the
+children of k are 2k+1 (gate 0, "left", w.o <= b) and 2k+2 (gate 1, "right",
+w.o > b); with depth D there are 2^D - 1 internal nodes and leaf l is heap node
+(2^D - 1) + l.
+
+    g_k(o) = 1[w_k.o > b_k],  w_k = W_k / ||W_k||                        # Eq. (hard_gate)
+    a_nom(o) = c_a + s_a * tanh(K_l o + beta_l),  l = hard-routed leaf     # Eq. (hard_tree_policy)
+    g_k^ST = sg(g_k - p_k) + p_k,  p_k = sigmoid((w_k.o - b_k) / tau)     # Eq. (st_gate)
+
+Training forward: the leaf weight of leaf l is the product over its path of g^ST
+(right) or 1 - g^ST (left); its forward value is exactly the hard one-hot (we
+write g^ST as g + (p - sg(p)), which is exactly g in floating point, unlike
+(g - p) + p), and its gradient reaches W and b through the path products. The
+action is sum_l weight_l * (c_a + s_a tanh(K_l o + beta_l)), i.e. exactly the
+hard leaf's action.
+
+Dtype policy: gate margins w.o - b are computed in float64 in both the torch
+module and the numpy twins, from the same float32 observations and parameters.
+Routing can then disagree between the two only if |w.o - b| is at float64
+rounding level (~1e-15), whereas float32 margins would flip routes within
+~1e-7 of a threshold. Leaf controllers run in the parameter dtype (float32) in
+torch and in float64 in numpy; they agree to ~1e-7 since tanh is 1-Lipschitz.
+
+Parameters travel as a flat dict[str, np.ndarray] (`export_params`): keys
+"carrier_{i}/{W,b,K,beta,log_std,c_a,s_a}" (float32) plus "format_version".
+`log_std` is the per-carrier proposal spread (common/proposal.py); it lives in
+the tree so it travels with the tree parameters.
+
+The numpy twins (`tree_forward_np`, `team_forward_np`, `validate_params`) do not
+need torch; the torch classes (`HardObliqueTree`, `TeamPolicy`) are created on
+first access (module __getattr__) so actor processes never import torch.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+FORMAT_VERSION = 1
+PARAM_NAMES = ("W", "b", "K", "beta", "log_std", "c_a", "s_a")
+
+
+@dataclass(frozen=True)
+class TreeConfig:
+    depth: int = 4                 # 2^depth leaves
+    b_init_scale: float = 0.1      # thresholds b ~ N(0, b_init_scale^2)
+    k_init_scale: float = 0.1      # K ~ N(0, (k_init_scale / sqrt(obs_dim))^2): weak random controller
+    init_log_std: float = -0.5     # proposal spread in pre-tanh space (sigma ~ 0.61)
+    action_center: float = 0.0     # c_a (action box [-1, 1])
+    action_half_range: float = 1.0  # s_a
+
+
+class TreeOutput(NamedTuple):
+    """Tree: action [B,A], leaf [B], nodes/sides [B,D]. Team: action [B,N*A], leaf [B,N], nodes/sides [B,N,D]."""
+
+    action: object
+    leaf: object
+    nodes: object
+    sides: object
+
+
+class ParamsSpec(NamedTuple):
+    n_agents: int
+    obs_dim: int
+    act_dim: int
+    depth: int
+
+
+class InvalidParams(ValueError):
+    """Exported tree parameters that are missing, mis-shaped, non-float or non-finite."""
+
+
+# ----------------------------------------------------------------------------- parameter dicts
+
+
+def _depth_of(n_internal: int) -> int:
+    depth = int(round(math.log2(n_internal + 1))) if n_internal > 0 else 0
+    if depth < 1 or 2**depth - 1 != n_internal:
+        raise InvalidParams(f"W has {n_internal} rows; expected 2^depth - 1 internal nodes with depth >= 1")
+    return depth
+
+
+def _expected_shapes(obs_dim: int, act_dim: int, depth: int) -> dict[str, tuple[int, ...]]:
+    n_internal, n_leaves = 2**depth - 1, 2**depth
+    return {
+        "W": (n_internal, obs_dim),
+        "b": (n_internal,),
+        "K": (n_leaves, act_dim, obs_dim),
+        "beta": (n_leaves, act_dim),
+        "log_std": (act_dim,),
+        "c_a": (act_dim,),
+        "s_a": (act_dim,),
+    }
+
+
+def validate_params(params: Mapping[str, np.ndarray]) -> ParamsSpec:
+    """Check an exported parameter dict; returns its shape spec or raises InvalidParams."""
+    if not isinstance(params, Mapping):
+        raise InvalidParams(f"params must be a mapping, got {type(params).__name__}")
+    if "format_version" not in params:
+        raise InvalidParams("params lack 'format_version'")
+    version = np.asarray(params["format_version"])
+    if version.size != 1 or version.dtype.kind not in "iuf" or float(version.reshape(())) != FORMAT_VERSION:
+        raise InvalidParams(f"params format_version {version!r} is not supported (expected {FORMAT_VERSION})")
+    carriers: dict[int, dict[str, np.ndarray]] = {}
+    for key, value in params.items():
+        if key == "format_version":
+            continue
+        head, _, name = key.partition("/")
+        if not head.startswith("carrier_") or not head[8:].isdigit() or name not in PARAM_NAMES:
+            raise InvalidParams(f"unknown params key {key!r} (expected 'carrier_<i>/<{'|'.join(PARAM_NAMES)}>')")
+        carriers.setdefault(int(head[8:]), {})[name] = value
+    if not carriers or sorted(carriers) != list(range(len(carriers))):
+        raise InvalidParams(f"carrier indices must be 0..N-1, got {sorted(carriers)}")
+    spec = None
+    for i in range(len(carriers)):
+        arrays = carriers[i]
+        missing = [n for n in PARAM_NAMES if n not in arrays]
+        if missing:
+            raise InvalidParams(f"carrier_{i} lacks {missing}")
+        for name in PARAM_NAMES:
+            arr = np.asarray(arrays[name])
+            if arr.dtype.kind != "f":
+                raise InvalidParams(f"carrier_{i}/{name} must be a float array, got dtype {arr.dtype}")
+            if not np.all(np.isfinite(arr)):
+                raise InvalidParams(f"carrier_{i}/{name} contains NaN/Inf")
+        W, K = np.asarray(arrays["W"]), np.asarray(arrays["K"])
+        if W.ndim != 2 or K.ndim != 3:
+            raise InvalidParams(f"carrier_{i}: W must be 2-D and K 3-D, got {W.shape} and {K.shape}")
+        this = ParamsSpec(len(carriers), W.shape[1], K.shape[1], _depth_of(W.shape[0]))
+        for name, shape in _expected_shapes(this.obs_dim, this.act_dim, this.depth).items():
+            if np.shape(arrays[name]) != shape:
+                raise InvalidParams(f"carrier_{i}/{name} has shape {np.shape(arrays[name])}, expected {shape}")
+        if spec is not None and this != spec:
+            raise InvalidParams(f"carrier_{i} has shape spec {this}, carrier_0 has {spec}")
+        if np.any(np.linalg.norm(W, axis=1) == 0):
+            raise InvalidParams(f"carrier_{i}/W has a zero row (split vectors are normalized)")
+        if np.any(np.asarray(arrays["s_a"]) <= 0):
+            raise InvalidParams(f"carrier_{i}/s_a must be > 0")
+        spec = this
+    return spec
+
+
+def carrier_params(params: Mapping[str, np.ndarray], i: int) -> dict[str, np.ndarray]:
+    """The arrays of carrier i without the 'carrier_i/' prefix."""
+    return {name: params[f"carrier_{i}/{name}"] for name in PARAM_NAMES}
+
+
+def team_log_std(params: Mapping[str, np.ndarray]) -> np.ndarray:
+    """Stacked proposal log-std [N*A] (float64) from an exported dict."""
+    n = validate_params(params).n_agents
+    return np.concatenate([np.asarray(params[f"carrier_{i}/log_std"], np.float64) for i in range(n)])
+
+
+# ----------------------------------------------------------------------------- numpy twins (actors)
+
+
+def _route_np(margins: np.ndarray):
+    """Hard routing from float64 gate margins [B, 2^D - 1] -> (leaf [B], nodes [B,D], sides [B,D])."""
+    B, n_internal = margins.shape
+    depth = _depth_of(n_internal)
+    hard = margins > 0  # Eq. (hard_gate): right iff w.o > b
+    rows = np.arange(B)
+    node = np.zeros(B, dtype=np.int64)
+    nodes = np.empty((B, depth), dtype=np.int64)
+    sides = np.empty((B, depth), dtype=bool)
+    for level in range(depth):
+        side = hard[rows, node]
+        nodes[:, level], sides[:, level] = node, side
+        node = 2 * node + 1 + side
+    return node - n_internal, nodes, sides
+
+
+def tree_forward_np(params_i: Mapping[str, np.ndarray], obs: np.ndarray):
+    """One carrier's hard tree in numpy: obs [B,obs_dim] -> (action [B,A] f64, leaf [B], nodes [B,D], sides [B,D])."""
+    obs = np.asarray(obs)
+    W = np.asarray(params_i["W"], dtype=np.float64)
+    if obs.ndim != 2 or obs.shape[1] != W.shape[1]:
+        raise ValueError(f"tree: obs must be [B,{W.shape[1]}], got {obs.shape}")
+    obs64 = obs.astype(np.float64)
+    w = W / np.linalg.norm(W, axis=1, keepdims=True)
+    margins = obs64 @ w.T - np.asarray(params_i["b"], dtype=np.float64)
+    leaf, nodes, sides = _route_np(margins)
+    K = np.asarray(params_i["K"], dtype=np.float64)[leaf]
+    u = np.einsum("bao,bo->ba", K, obs64) + np.asarray(params_i["beta"], dtype=np.float64)[leaf]
+    c_a = np.asarray(params_i["c_a"], dtype=np.float64)
+    s_a = np.asarray(params_i["s_a"], dtype=np.float64)
+    return c_a + s_a * np.tanh(u), leaf, nodes, sides
+
+
+def team_forward_np(params: Mapping[str, np.ndarray], obs: np.ndarray):
+    """All carriers: obs [B,N,obs_dim] -> (a_st [B,N*A], leaves [B,N], nodes [B,N,D], sides [B,N,D])."""
+    spec = validate_params(params)
+    obs = np.asarray(obs)
+    if obs.ndim != 3 or obs.shape[1:] != (spec.n_agents, spec.obs_dim):
+        raise ValueError(f"team: obs must be [B,{spec.n_agents},{spec.obs_dim}], got {obs.shape}")
+    outs = [tree_forward_np(carrier_params(params, i), obs[:, i]) for i in range(spec.n_agents)]
+    return (
+        np.concatenate([o[0] for o in outs], axis=1),
+        np.stack([o[1] for o in outs], axis=1),
+        np.stack([o[2] for o in outs], axis=1),
+        np.stack([o[3] for o in outs], axis=1),
+    )
+
+
+# ----------------------------------------------------------------------------- torch (learner)
+
+
+def _build_torch_classes() -> dict:
+    import torch
+    from torch import nn
+
+    class HardObliqueTree(nn.Module):
+        """One carrier's hard oblique tree; hard forward, straight-through backward."""
+
+        def __init__(self, obs_dim: int, act_dim: int = 3, depth: int | None = None, config: TreeConfig | None = None):
+            super().__init__()
+            cfg = config or TreeConfig()
+            depth = cfg.depth if depth is None else depth
+            if depth < 1 or obs_dim < 1 or act_dim < 1:
+                raise ValueError(f"tree: need depth, obs_dim, act_dim >= 1, got {depth}, {obs_dim}, {act_dim}")
+            self.obs_dim, self.act_dim, self.depth = obs_dim, act_dim, depth
+            self.n_internal, self.n_leaves = 2**depth - 1, 2**depth
+            W = torch.randn(self.n_internal, obs_dim)
+            self.W = nn.Parameter(W / W.norm(dim=1, keepdim=True))  # random unit split vectors
+            self.b = nn.Parameter(cfg.b_init_scale * torch.randn(self.n_internal))
+            self.K = nn.Parameter(cfg.k_init_scale / math.sqrt(obs_dim) * torch.randn(self.n_leaves, act_dim, obs_dim))
+            self.beta = nn.Parameter(torch.zeros(self.n_leaves, act_dim))
+            self.log_std = nn.Parameter(torch.full((act_dim,), float(cfg.init_log_std)))
+            self.register_buffer("c_a", torch.full((act_dim,), float(cfg.action_center)))
+            self.register_buffer("s_a", torch.full((act_dim,), float(cfg.action_half_range)))
+
+        def gate_margins(self, obs):
+            """w_k.o - b_k for every internal node, float64 [B, n_internal] (see dtype policy)."""
+            W = self.W.double()
+            w = W / torch.linalg.vector_norm(W, dim=1, keepdim=True)
+            return obs.double() @ w.T - self.b.double()
+
+        def leaf_actions(self, obs):
+            """c_a + s_a tanh(K_l o + beta_l) for every leaf, [B, n_leaves, act_dim]."""
+            u = torch.einsum("lao,bo->bla", self.K, obs.to(self.K.dtype)) + self.beta
+            return self.c_a + self.s_a * torch.tanh(u)
+
+        def route(self, margins):
+            """Hard routing (Eq. hard_gate): leaf [B], nodes [B,D], sides [B,D] (True = right)."""
+            hard = margins > 0
+            node = torch.zeros(len(margins), dtype=torch.int64, device=margins.device)
+            nodes, sides = [], []
+            for _ in range(self.depth):
+                side = hard.gather(1, node[:, None])[:, 0]
+                nodes.append(node)
+                sides.append(side)
+                node = 2 * node + 1 + side.long()
+            return node - self.n_internal, torch.stack(nodes, 1), torch.stack(sides, 1)
+
+        def st_leaf_weights(self, margins, tau):
+            """Path products of g^ST / 1 - g^ST, [B, n_leaves] float64; forward value = hard one-hot."""
+            p = torch.sigmoid(margins / tau)
+            g_st = (margins > 0).to(p.dtype) + (p - p.detach())  # Eq. (st_gate), forward exactly hard
+            weight = torch.ones_like(margins[:, :1])
+            for level in range(self.depth):
+                g = g_st[:, 2**level - 1 : 2**(level + 1) - 1]  # nodes of this level, left to right
+                weight = torch.stack([weight * (1.0 - g), weight * g], dim=2).reshape(len(margins), -1)
+            return weight
+
+        def forward(self, obs, tau: float = 1.0) -> TreeOutput:
+            if obs.ndim != 2 or obs.shape[1] != self.obs_dim:
+                raise ValueError(f"tree: obs must be [B,{self.obs_dim}], got {tuple(obs.shape)}")
+            if not float(tau) > 0:
+                raise ValueError(f"tree: tau must be > 0, got {tau}")
+            margins = self.gate_margins(obs)
+            leaf, nodes, sides = self.route(margins.detach())
+            weight = self.st_leaf_weights(margins, tau).to(self.K.dtype)
+            action = (weight[:, :, None] * self.leaf_actions(obs)).sum(1)  # Eq. (hard_tree_policy)
+            return TreeOutput(action, leaf, nodes, sides)
+
+        def export_arrays(self) -> dict[str, np.ndarray]:
+            return {name: getattr(self, name).detach().cpu().numpy().astype(np.float32) for name in PARAM_NAMES}
+
+    class TeamPolicy(nn.Module):
+        """N independent hard trees (no parameter sharing); stacked action [B, N*act_dim]."""
+
+        def __init__(self, n_agents: int, obs_dim: int, act_dim: int = 3, depth: int | None = None, config: TreeConfig | None = None):
+            super().__init__()
+            if n_agents < 1:
+                raise ValueError(f"team: n_agents must be >= 1, got {n_agents}")
+            self.n_agents, self.obs_dim, self.act_dim = n_agents, obs_dim, act_dim
+            self.trees = nn.ModuleList(HardObliqueTree(obs_dim, act_dim, depth, config) for _ in range(n_agents))
+            self.depth = self.trees[0].depth
+
+        @property
+        def log_std(self):
+            """Stacked proposal log-std [N*act_dim] (differentiable)."""
+            return torch.cat([tree.log_std for tree in self.trees])
+
+        def forward(self, obs, tau: float = 1.0) -> TreeOutput:
+            if obs.ndim != 3 or obs.shape[1] != self.n_agents:
+                raise ValueError(f"team: obs must be [B,{self.n_agents},obs_dim], got {tuple(obs.shape)}")
+            outs = [tree(obs[:, i], tau) for i, tree in enumerate(self.trees)]
+            return TreeOutput(
+                torch.cat([o.action for o in outs], dim=1),
+                torch.stack([o.leaf for o in outs], dim=1),
+                torch.stack([o.nodes for o in outs], dim=1),
+                torch.stack([o.sides for o in outs], dim=1),
+            )
+
+        def spec(self) -> ParamsSpec:
+            return ParamsSpec(self.n_agents, self.obs_dim, self.act_dim, self.depth)
+
+        def export_params(self) -> dict[str, np.ndarray]:
+            out: dict[str, np.ndarray] = {"format_version": np.asarray(FORMAT_VERSION, dtype=np.float32)}
+            for i, tree in enumerate(self.trees):
+                out.update({f"carrier_{i}/{k}": v for k, v in tree.export_arrays().items()})
+            return out
+
+        def load_params(self, params: Mapping[str, np.ndarray]) -> None:
+            spec = validate_params(params)
+            if spec != self.spec():
+                raise InvalidParams(f"params have shape spec {spec}, this team is {self.spec()}")
+            with torch.no_grad():
+                for i, tree in enumerate(self.trees):
+                    for name in PARAM_NAMES:
+                        target = getattr(tree, name)
+                        target.copy_(torch.as_tensor(np.asarray(params[f"carrier_{i}/{name}"]), dtype=target.dtype))
+
+        @classmethod
+        def from_params(cls, params: Mapping[str, np.ndarray]) -> "TeamPolicy":
+            spec = validate_params(params)
+            team = cls(spec.n_agents, spec.obs_dim, spec.act_dim, spec.depth)
+            team.load_params(params)
+            return team
+
+    return {"HardObliqueTree": HardObliqueTree, "TeamPolicy": TeamPolicy}
+
+
+_TORCH_NAMES = ("HardObliqueTree", "TeamPolicy")
+
+
+def __getattr__(name: str):
+    if name in _TORCH_NAMES:  # build the torch classes once, on first use
+        globals().update(_build_torch_classes())
+        return globals()[name]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
