@@ -1,0 +1,208 @@
+"""K transport environments in one process (one MjModel, K MjData): the actors' env API.
+
+Task logic lives here (physics in physics.py): start/goal randomization, the shared
+reward, termination (success, drop) vs truncation (time limit), the scripted human
+slot, safety rows for the next action, and per-episode metrics. See
+docs/interfaces.md (common/env) for the dict returned by ``reset``/``step``.
+
+Reward (weights in ``RewardWeights``), per control step:
+``r = w_p * ds / max_step_xy - w_h * |heading err| - w_s * mean((strain/drop_strain)^2)
+- w_c * collision - w_d * drop - w_t + w_succ * success`` where ``ds`` is the route
+progress of the payload projection this step (clipped to [-2, 2] max steps).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from common.env.config import (CARRIER_RADIUS, CARRY_HEIGHT, FACING, GRASP_LOCAL, N_CARRIERS, PAIR_REST,
+                               PAYLOAD_POINTS_LOCAL, EnvConfig)
+from common.env.geometry import WallSet, from_frame, wrap
+from common.env.observations import OBS_DIM, STATE_DIM, global_state, observations, snapshot
+from common.env.physics import TransportPhysics
+from common.env.scenarios import SCENARIOS, Route
+from common.env.scripted import ScriptedHuman, scripted_actions
+
+
+def safety_config(cfg: EnvConfig):
+    from common.env.safety import SafetyConfig
+
+    return SafetyConfig(alpha=cfg.alpha, max_rows=cfg.max_rows, carrier_radius=CARRIER_RADIUS + 0.05,
+                        max_step_xy=cfg.max_step_xy, max_step_yaw=cfg.max_step_yaw)
+
+
+class BatchEnv:
+    n_agents = N_CARRIERS
+    act_dim = 3
+    obs_dim = OBS_DIM
+    state_dim = STATE_DIM
+
+    def __init__(self, cfg: EnvConfig, num_envs: int = 1, seed: int = 0):
+        from common.env import safety
+
+        self.cfg = cfg
+        self.K = num_envs
+        self.spec = SCENARIOS[cfg.scenario]
+        self.route = Route(self.spec.route)
+        self.walls_array = self.spec.walls_array()
+        self.walls = WallSet(self.walls_array)
+        self.phys = TransportPhysics(self.spec, cfg, num_envs)
+        self.max_rows = cfg.max_rows
+        self.max_steps = cfg.episode_steps
+        self._safety = safety
+        self.safety_cfg = safety_config(cfg)
+        self.rngs = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(num_envs)]
+        K = num_envs
+        self.s_prev = np.zeros(K)
+        self.s_start = np.zeros(K)
+        self.goal_s = np.full(K, self.route.length)
+        self.goal_xy = np.zeros((K, 2))
+        self.goal_yaw = np.zeros(K)
+        self.t = np.zeros(K, dtype=np.int64)
+        self._acc = {k: np.zeros(K) for k in ("ret", "col", "tilt", "head", "height")}
+        self._min_clear = np.full(K, np.inf)
+        self.fixed_mask = np.zeros((K, 3 * N_CARRIERS), dtype=bool)
+        self.human = None
+        if cfg.human_slot is not None:
+            self.fixed_mask[:, 3 * cfg.human_slot:3 * cfg.human_slot + 3] = True
+            self.human = ScriptedHuman(cfg.human_slot, cfg, K)
+        self.human_action = np.zeros((K, 3 * N_CARRIERS))
+        self.snap = None
+        self._started = False
+
+    # --- episode start -------------------------------------------------------------
+    def _reset_env(self, k: int):
+        rng, spec, route = self.rngs[k], self.spec, self.route
+        xy, yaw = route.points[0].copy(), float(route.heading[0])
+        goal_s = route.length
+        if self.cfg.randomize:
+            dx, dy, dyaw = spec.start_range
+            off = rng.uniform(-1.0, 1.0, 3) * np.array([dx, dy, dyaw])
+            xy = xy + from_frame(off[:2], yaw)
+            yaw += off[2]
+            goal_s -= rng.uniform(0.0, spec.goal_range)
+        gxy, gyaw = route.pose(goal_s)
+        self.goal_s[k], self.goal_xy[k], self.goal_yaw[k] = goal_s, gxy, gyaw
+        carriers = np.zeros((N_CARRIERS, 3))
+        carriers[:, :2] = xy + from_frame(GRASP_LOCAL, yaw)
+        carriers[:, 2] = yaw + FACING
+        self.phys.reset(k, xy, yaw, carriers)
+        self.s_prev[k] = route.project(xy[None], np.zeros(1))[0]
+        self.s_start[k] = self.s_prev[k]
+        self.t[k] = 0
+        for a in self._acc.values():
+            a[k] = 0.0
+        self._min_clear[k] = np.inf
+
+    def reset(self) -> dict:
+        for k in range(self.K):
+            self._reset_env(k)
+        self._started = True
+        out = self._observe(reset_human=np.ones(self.K, dtype=bool))
+        return out
+
+    # --- observation, rows, human --------------------------------------------------
+    def _progress(self, s):
+        return np.clip((s - self.s_start) / np.maximum(self.goal_s - self.s_start, 1e-6), 0.0, 1.0)
+
+    def _observe(self, reset_human=None, snap=None) -> dict:
+        cfg = self.cfg
+        if snap is None:
+            snap = snapshot(self.phys, self.route, self.walls, self.s_prev, self.goal_s, cfg)
+        self.snap = snap
+        progress = self._progress(snap.s)
+        time_left = 1.0 - self.t / self.max_steps
+        obs = observations(snap, self.walls, self.goal_xy, self.goal_yaw, progress, time_left, cfg)
+        state = global_state(snap, obs, self.goal_xy, self.goal_yaw, progress, time_left, cfg.human_slot, cfg)
+        geom = self._safety.SafetyGeometry(
+            carrier_xy=snap.cxy, carrier_yaw=snap.cyaw, payload_xy=snap.pxy, payload_yaw=snap.pyaw,
+            payload_points_local=PAYLOAD_POINTS_LOCAL, grasp_local=GRASP_LOCAL, pair_rest=PAIR_REST)
+        C, c, row_mask, _ = self._safety.build_rows(geom, self.walls_array, self.safety_cfg)
+        self.human_action[:] = 0.0
+        if self.human is not None:
+            intended = scripted_actions(snap, cfg)
+            if reset_human is not None:
+                for k in np.flatnonzero(reset_human):
+                    self.human.reset(k, intended)
+            h = cfg.human_slot
+            self.human_action[:, 3 * h:3 * h + 3] = self.human.act(intended, self.rngs)
+        return {
+            "obs": obs, "state": state, "C": np.asarray(C, np.float64), "c": np.asarray(c, np.float64),
+            "row_mask": np.asarray(row_mask, bool), "fixed_mask": self.fixed_mask.copy(),
+            "human_action": self.human_action.copy(), "progress": progress,
+        }
+
+    def scripted_actions(self) -> np.ndarray:
+        """Reference controller's actions [K,9] for the current state."""
+        return scripted_actions(self.snap, self.cfg)
+
+    # --- step ------------------------------------------------------------------------
+    def step(self, actions) -> dict:
+        if not self._started:
+            raise RuntimeError("call reset() before step()")
+        cfg, w = self.cfg, self.cfg.reward
+        a = np.asarray(actions, dtype=np.float64)
+        if a.shape != (self.K, 3 * N_CARRIERS):
+            raise ValueError(f"actions must have shape {(self.K, 3 * N_CARRIERS)}, got {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError("actions contain NaN or Inf")
+        a = np.clip(a, -1.0, 1.0)
+        if self.human is not None:
+            a = np.where(self.fixed_mask, self.human_action, a)
+        s_old = self.s_prev.copy()
+        self.phys.step(a)
+        snap = snapshot(self.phys, self.route, self.walls, self.s_prev, self.goal_s, cfg)
+        self.s_prev = snap.s.copy()
+        self.t += 1
+
+        drop = snap.strain.max(axis=1) > cfg.drop_strain
+        for k in np.flatnonzero(drop):
+            self.phys.release(k)
+        pos_err = np.linalg.norm(snap.pxy - self.goal_xy, axis=1)
+        yaw_err = np.abs(wrap(snap.pyaw - self.goal_yaw))
+        success = (pos_err < cfg.goal_pos_tol) & (yaw_err < cfg.goal_yaw_tol) & ~drop
+        terminated = drop | success
+        truncated = (self.t >= self.max_steps) & ~terminated
+        collision = snap.contact
+        heading_err = np.abs(wrap(snap.route_yaw - snap.pyaw))
+        ds = np.clip(snap.s - s_old, -2 * cfg.max_step_xy, 2 * cfg.max_step_xy)
+        reward = (w.progress * ds / cfg.max_step_xy - w.heading * heading_err
+                  - w.strain * np.mean((snap.strain / cfg.drop_strain) ** 2, axis=1)
+                  - w.collision * collision - w.drop * drop - w.time + w.success * success)
+
+        acc = self._acc
+        acc["ret"] += reward
+        acc["col"] += collision
+        acc["tilt"] += np.degrees(snap.tilt)
+        acc["head"] += heading_err
+        acc["height"] += np.abs(snap.pz - CARRY_HEIGHT)
+        self._min_clear = np.minimum(self._min_clear, snap.clearance)
+
+        done = terminated | truncated
+        K = self.K
+        final_obs = np.zeros((K, N_CARRIERS, OBS_DIM), np.float32)
+        final_state = np.zeros((K, STATE_DIM), np.float32)
+        episodes = []
+        if np.any(done):
+            self.snap = snap
+            progress = self._progress(snap.s)
+            time_left = 1.0 - self.t / self.max_steps
+            obs_end = observations(snap, self.walls, self.goal_xy, self.goal_yaw, progress, time_left, cfg)
+            state_end = global_state(snap, obs_end, self.goal_xy, self.goal_yaw, progress, time_left, cfg.human_slot, cfg)
+            for k in np.flatnonzero(done):
+                final_obs[k], final_state[k] = obs_end[k], state_end[k]
+                n = int(self.t[k])
+                episodes.append({
+                    "scenario": cfg.scenario, "success": bool(success[k]), "drop": bool(drop[k]),
+                    "return": float(acc["ret"][k]), "steps": n, "collision_steps": int(acc["col"][k]),
+                    "col_per_1k": 1000.0 * acc["col"][k] / n,
+                    "completion_time": n * cfg.control_dt if success[k] else float("nan"),
+                    "tilt": acc["tilt"][k] / n, "heading_error": acc["head"][k] / n,
+                    "height_error": acc["height"][k] / n, "min_clearance": float(self._min_clear[k]),
+                    "progress_per_step": float(progress[k]) / n, "final_progress": float(progress[k]),
+                })
+                self._reset_env(k)
+        # after resets the state changed; otherwise reuse this step's snapshot
+        out = self._observe(reset_human=done, snap=None if episodes else snap)
+        out.update(reward=reward, terminated=terminated, truncated=truncated, collision=collision.copy(),
+                   drop=drop, success=success, final_obs=final_obs, final_state=final_state, episodes=episodes)
+        return out

@@ -1,0 +1,82 @@
+"""Vectorized planar geometry against oriented wall boxes ``(cx, cy, hx, hy, yaw)``."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def wrap(a):
+    """Angle(s) wrapped to [-pi, pi)."""
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def rot(yaw):
+    """Rotation matrices [...,2,2] for yaw [...]."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+
+
+def to_frame(vec, yaw):
+    """World vectors [...,2] expressed in frames with heading yaw [...]: R(yaw)^T v."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.stack([c * vec[..., 0] + s * vec[..., 1], -s * vec[..., 0] + c * vec[..., 1]], -1)
+
+
+def from_frame(vec, yaw):
+    """Frame vectors [...,2] to world: R(yaw) v."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.stack([c * vec[..., 0] - s * vec[..., 1], s * vec[..., 0] + c * vec[..., 1]], -1)
+
+
+class WallSet:
+    """Precomputed wall boxes for distance and ray queries."""
+
+    def __init__(self, walls: np.ndarray):
+        walls = np.asarray(walls, dtype=np.float64).reshape(-1, 5)
+        if len(walls) == 0:
+            raise ValueError("a scenario needs at least one wall")
+        if np.any(walls[:, 2:4] <= 0):
+            raise ValueError("wall half-sizes must be positive")
+        self.walls = walls
+        self.center = walls[:, :2]
+        self.half = walls[:, 2:4]
+        self.cos = np.cos(walls[:, 4])
+        self.sin = np.sin(walls[:, 4])
+
+    def _local(self, pts):
+        d = pts[..., None, :] - self.center  # [...,W,2]
+        return np.stack([self.cos * d[..., 0] + self.sin * d[..., 1],
+                         -self.sin * d[..., 0] + self.cos * d[..., 1]], -1)
+
+    def signed_distance(self, pts):
+        """Signed distance [...,W] of points [...,2] to each box (negative inside)."""
+        q = np.abs(self._local(pts)) - self.half
+        outside = np.linalg.norm(np.maximum(q, 0.0), axis=-1)
+        inside = np.minimum(np.max(q, axis=-1), 0.0)
+        return outside + inside
+
+    def nearest(self, pts):
+        """(distance [...], vector [...,2] from each point to the nearest wall point)."""
+        loc = self._local(pts)
+        clamped = np.clip(loc, -self.half, self.half)
+        d = self.signed_distance(pts)
+        k = np.argmin(d, axis=-1)
+        delta_loc = np.take_along_axis(clamped - loc, k[..., None, None], axis=-2)[..., 0, :]
+        c, s = self.cos[k], self.sin[k]
+        vec = np.stack([c * delta_loc[..., 0] - s * delta_loc[..., 1],
+                        s * delta_loc[..., 0] + c * delta_loc[..., 1]], -1)
+        return np.take_along_axis(d, k[..., None], axis=-1)[..., 0], vec
+
+    def ray_distance(self, origin, direction, max_dist: float):
+        """Distance along unit rays origin/direction [...,2] to the first box (slab test), capped."""
+        lo = self._local(origin)
+        dl = np.stack([self.cos * direction[..., None, 0] + self.sin * direction[..., None, 1],
+                       -self.sin * direction[..., None, 0] + self.cos * direction[..., None, 1]], -1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = 1.0 / np.where(np.abs(dl) < 1e-12, 1e-12, dl)
+            t1 = (-self.half - lo) * inv
+            t2 = (self.half - lo) * inv
+        tmin = np.max(np.minimum(t1, t2), axis=-1)
+        tmax = np.min(np.maximum(t1, t2), axis=-1)
+        hit = (tmax >= np.maximum(tmin, 0.0))
+        t = np.where(hit, np.maximum(tmin, 0.0), max_dist)
+        return np.minimum(np.min(t, axis=-1), max_dist)

@@ -1,0 +1,49 @@
+"""Per-episode transport metrics and their aggregation (paper Sec. IV-A).
+
+An episode record (built by ``BatchEnv`` when an episode ends) holds:
+
+* ``success`` (bool), ``drop`` (bool), ``return`` (sum of shared rewards), ``steps``;
+* ``collision_steps`` and ``col_per_1k`` = 1000 * collision_steps / steps (control
+  steps with any carrier or payload contact with a wall);
+* ``completion_time`` (s, successful episodes only, else NaN);
+* ``tilt`` (mean payload tilt from vertical, deg), ``heading_error`` (mean |payload yaw
+  - route heading|, rad), ``height_error`` (mean |payload height - carry height|, m);
+* ``min_clearance`` (min over the episode of the formation's distance to walls, m);
+* ``progress_per_step`` (route progress gained per step), ``final_progress``.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+EPISODE_KEYS = ("success", "drop", "return", "steps", "collision_steps", "col_per_1k", "completion_time",
+                "tilt", "heading_error", "height_error", "min_clearance", "progress_per_step", "final_progress")
+
+_AGG = {  # aggregate name -> episode key
+    "success_rate": "success", "return_mean": "return", "col_per_1k": "col_per_1k", "drop_rate": "drop",
+    "completion_time": "completion_time", "tilt": "tilt", "heading_error": "heading_error",
+    "height_error": "height_error", "min_clearance": "min_clearance", "progress_per_step": "progress_per_step",
+}
+
+
+def aggregate(episodes: list[dict]) -> dict:
+    """Means and standard deviations over episodes: ``{name: mean, name + "_std": std, "episodes": n}``.
+
+    ``col_per_1k`` is also given pooled over all steps (``col_per_1k_pooled``);
+    ``completion_time`` averages successful episodes only (NaN if none).
+    """
+    out: dict = {"episodes": len(episodes)}
+    if not episodes:
+        for name in _AGG:
+            out[name], out[name + "_std"] = math.nan, math.nan
+        out["col_per_1k_pooled"] = math.nan
+        return out
+    for name, key in _AGG.items():
+        vals = np.array([float(e[key]) for e in episodes], dtype=np.float64)
+        vals = vals[~np.isnan(vals)]
+        out[name] = float(vals.mean()) if len(vals) else math.nan
+        out[name + "_std"] = float(vals.std()) if len(vals) else math.nan
+    steps = sum(int(e["steps"]) for e in episodes)
+    out["col_per_1k_pooled"] = 1000.0 * sum(int(e["collision_steps"]) for e in episodes) / max(steps, 1)
+    return out

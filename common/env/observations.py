@@ -1,0 +1,179 @@
+"""Task-side view of the physics: route tracking snapshot, per-carrier observations, global state.
+
+All quantities are vectorized over K environments. Per-carrier features are in the
+carrier's own frame (x forward, y left) and scaled to O(1); names are stable
+(``OBS_FEATURE_NAMES``) because the audit tools print tree predicates with them.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.env.config import (CARRY_HEIGHT, FACING, GRASP_LOCAL, N_CARRIERS, PAYLOAD_POINTS_LOCAL,
+                               CARRIER_RADIUS, EnvConfig)
+from common.env.geometry import WallSet, from_frame, to_frame, wrap
+from common.env.physics import TransportPhysics, quat_to_yaw_tilt
+
+OBS_FEATURE_NAMES: list[str] = [
+    "vel_x", "vel_y", "vel_yaw",                    # own velocity / (max step per control_dt)
+    "slot_dx", "slot_dy",                           # carrier -> own grasp slot at the payload's lookahead pose, / lookahead
+    "slot_dyaw",                                    # slot yaw (lookahead heading + facing) - own yaw (rad)
+    "grasp_dx", "grasp_dy", "grasp_strain",         # carrier -> own grasp point on the payload now, / drop_strain
+    "payload_dx", "payload_dy",                     # carrier -> payload centre (m)
+    "payload_sin", "payload_cos",                   # payload yaw relative to own yaw
+    "heading_err",                                  # route heading at lookahead - payload yaw (rad)
+    "lookahead_dx", "lookahead_dy",                 # payload centre -> route lookahead point, / lookahead
+    "goal_dx", "goal_dy", "goal_dyaw",              # payload -> goal (/5 m, clipped to +-2) and goal yaw error (rad)
+    "progress",                                     # route progress in [0, 1]
+    "partner1_dx", "partner1_dy", "partner1_strain",  # carrier (i+1)%3 relative position (/2 m) and strain
+    "partner2_dx", "partner2_dy", "partner2_strain",  # carrier (i+2)%3
+    "wall_dist_front", "wall_dist_left", "wall_dist_back", "wall_dist_right",  # free ray length beyond the carrier disc / 2 m
+    "payload_clearance",                            # min distance of payload boundary points to walls (m, capped at 2)
+    "payload_wall_dx", "payload_wall_dy",           # nearest payload point -> nearest wall point (m)
+    "time_left",                                    # 1 - t / max_steps
+]
+OBS_DIM = len(OBS_FEATURE_NAMES)
+RAY_MAX = 2.0
+_RAY_ANGLES = np.array([0.0, np.pi / 2, np.pi, -np.pi / 2])
+
+
+@dataclass
+class Snapshot:
+    """Everything the task layer derives from the physics state at one instant (K envs)."""
+
+    cxy: np.ndarray         # [K,3,2] carrier positions
+    cyaw: np.ndarray        # [K,3]
+    cvel: np.ndarray        # [K,3,3] world (vx, vy, wz)
+    pxy: np.ndarray         # [K,2]
+    pz: np.ndarray          # [K]
+    pyaw: np.ndarray        # [K]
+    tilt: np.ndarray        # [K] rad
+    pvel: np.ndarray        # [K,6]
+    strain: np.ndarray      # [K,3] m
+    s: np.ndarray           # [K] route arc length of the payload projection
+    look_xy: np.ndarray     # [K,2] route lookahead point
+    look_yaw: np.ndarray    # [K] route heading there
+    route_yaw: np.ndarray   # [K] route heading at the projection
+    contact: np.ndarray     # [K] bool: any wall contact
+    clearance: np.ndarray   # [K] min signed distance of the formation (payload points, carrier discs) to walls
+
+
+def snapshot(phys: TransportPhysics, route, walls: WallSet, s_prev, goal_s, cfg: EnvConfig) -> Snapshot:
+    cp = phys.carrier_pose
+    pos = phys.payload_pos
+    yaw, tilt = quat_to_yaw_tilt(phys.payload_quat)
+    pxy = pos[:, :2].copy()
+    s = route.project(pxy, s_prev)
+    s_look = np.minimum(s + cfg.lookahead, goal_s)
+    look_xy, look_yaw = route.pose(s_look)
+    _, route_yaw = route.pose(s)
+    pts = pxy[:, None, :] + from_frame(np.broadcast_to(PAYLOAD_POINTS_LOCAL, (len(pxy),) + PAYLOAD_POINTS_LOCAL.shape),
+                                       yaw[:, None])
+    d_pay = walls.signed_distance(pts).min(axis=(-1, -2))
+    d_car = walls.signed_distance(cp[..., :2]).min(axis=(-1, -2)) - CARRIER_RADIUS
+    return Snapshot(
+        cxy=cp[..., :2].copy(), cyaw=cp[..., 2].copy(), cvel=phys.carrier_vel.copy(), pxy=pxy, pz=pos[:, 2].copy(),
+        pyaw=yaw, tilt=tilt, pvel=phys.payload_vel.copy(), strain=phys.grasp_strain(), s=s,
+        look_xy=look_xy, look_yaw=look_yaw, route_yaw=route_yaw, contact=phys.contact.copy(),
+        clearance=np.minimum(d_pay, d_car),
+    )
+
+
+def slot_targets(snap: Snapshot):
+    """World position [K,3,2] and yaw [K,3] of each carrier's grasp slot at the lookahead pose."""
+    K = len(snap.pxy)
+    slot = snap.look_xy[:, None, :] + from_frame(np.broadcast_to(GRASP_LOCAL, (K, 3, 2)), snap.look_yaw[:, None])
+    return slot, snap.look_yaw[:, None] + FACING
+
+
+def observations(snap: Snapshot, walls: WallSet, goal_xy, goal_yaw, progress, time_left, cfg: EnvConfig):
+    """Per-carrier observations [K,3,OBS_DIM] float32 (order of OBS_FEATURE_NAMES)."""
+    K = len(snap.pxy)
+    cyaw = snap.cyaw
+    out = np.empty((K, N_CARRIERS, OBS_DIM), dtype=np.float32)
+    col = 0
+
+    def put(x):
+        nonlocal col
+        x = np.asarray(x)
+        if x.ndim == 2:  # [K,3] -> one feature
+            out[..., col] = x
+            col += 1
+        else:            # [K,3,n]
+            out[..., col:col + x.shape[-1]] = x
+            col += x.shape[-1]
+
+    v_scale = cfg.max_step_xy / cfg.control_dt
+    put(to_frame(snap.cvel[..., :2], cyaw) / v_scale)
+    put(snap.cvel[..., 2] / (cfg.max_step_yaw / cfg.control_dt))
+    slot, slot_yaw = slot_targets(snap)
+    put(to_frame(slot - snap.cxy, cyaw) / cfg.lookahead)
+    put(wrap(slot_yaw - cyaw))
+    grasp_w = snap.pxy[:, None, :] + from_frame(np.broadcast_to(GRASP_LOCAL, (K, 3, 2)), snap.pyaw[:, None])
+    put(to_frame(grasp_w - snap.cxy, cyaw) / cfg.drop_strain)
+    put(snap.strain / cfg.drop_strain)
+    put(to_frame(snap.pxy[:, None, :] - snap.cxy, cyaw))
+    rel = snap.pyaw[:, None] - cyaw
+    put(np.sin(rel))
+    put(np.cos(rel))
+    put(np.broadcast_to(wrap(snap.look_yaw - snap.pyaw)[:, None], (K, 3)))
+    put(to_frame(np.broadcast_to((snap.look_xy - snap.pxy)[:, None, :], (K, 3, 2)), cyaw) / cfg.lookahead)
+    put(np.clip(to_frame(np.broadcast_to((goal_xy - snap.pxy)[:, None, :], (K, 3, 2)), cyaw) / 5.0, -2.0, 2.0))
+    put(np.broadcast_to(wrap(goal_yaw - snap.pyaw)[:, None], (K, 3)))
+    put(np.broadcast_to(progress[:, None], (K, 3)))
+    for off in (1, 2):
+        j = (np.arange(3) + off) % 3
+        put(to_frame(snap.cxy[:, j] - snap.cxy, cyaw) / 2.0)
+        put(snap.strain[:, j] / cfg.drop_strain)
+    ray_yaw = cyaw[..., None] + _RAY_ANGLES                                  # [K,3,4]
+    dirs = np.stack([np.cos(ray_yaw), np.sin(ray_yaw)], -1)
+    origin = np.broadcast_to(snap.cxy[:, :, None, :], dirs.shape)
+    ray = walls.ray_distance(origin, dirs, RAY_MAX + CARRIER_RADIUS) - CARRIER_RADIUS
+    put(np.clip(ray, -CARRIER_RADIUS, RAY_MAX) / RAY_MAX)
+    pts = snap.pxy[:, None, :] + from_frame(np.broadcast_to(PAYLOAD_POINTS_LOCAL, (K,) + PAYLOAD_POINTS_LOCAL.shape),
+                                            snap.pyaw[:, None])
+    d, vec = walls.nearest(pts)                                               # [K,P], [K,P,2]
+    p = np.argmin(d, axis=1)
+    dmin = d[np.arange(K), p]
+    vmin = vec[np.arange(K), p]
+    put(np.broadcast_to(np.minimum(dmin, 2.0)[:, None], (K, 3)))
+    put(to_frame(np.broadcast_to(vmin[:, None, :], (K, 3, 2)), cyaw))
+    put(np.broadcast_to(time_left[:, None], (K, 3)))
+    assert col == OBS_DIM
+    return out
+
+
+STATE_DIM = 4 + 3 + 2 + 6 + 3 + 9 + 2 + 1 + 2 + 1 + 1 + 3 + 1 + 12 + 1 + 3
+
+
+def global_state(snap: Snapshot, obs, goal_xy, goal_yaw, progress, time_left, human_slot, cfg: EnvConfig):
+    """Centralized-critic state [K,STATE_DIM] float32: the team's situation in the payload frame."""
+    K = len(snap.pxy)
+    v_scale = cfg.max_step_xy / cfg.control_dt
+    w_scale = cfg.max_step_yaw / cfg.control_dt
+    hs = np.zeros((K, 3))
+    if human_slot is not None:
+        hs[:, human_slot] = 1.0
+    parts = [
+        snap.pxy / 10.0, np.cos(snap.pyaw)[:, None], np.sin(snap.pyaw)[:, None],
+        to_frame(snap.pvel[:, :2], snap.pyaw) / v_scale, snap.pvel[:, 5:6] / w_scale,
+        ((snap.pz - CARRY_HEIGHT) / 0.1)[:, None], snap.tilt[:, None] * 10.0,
+        (to_frame(snap.cxy - snap.pxy[:, None, :], snap.pyaw[:, None]) - GRASP_LOCAL).reshape(K, 6) / cfg.drop_strain,
+        wrap(snap.cyaw - snap.pyaw[:, None] - FACING),
+        (to_frame(snap.cvel[..., :2], snap.pyaw[:, None]) / v_scale).reshape(K, 6),
+        snap.cvel[..., 2] / w_scale,
+        to_frame(snap.look_xy - snap.pxy, snap.pyaw) / cfg.lookahead,
+        wrap(snap.look_yaw - snap.pyaw)[:, None],
+        np.clip(to_frame(goal_xy - snap.pxy, snap.pyaw) / 5.0, -2, 2),
+        wrap(goal_yaw - snap.pyaw)[:, None],
+        progress[:, None],
+        snap.strain / cfg.drop_strain,
+        np.minimum(snap.clearance, 2.0)[:, None],
+        obs[:, :, OBS_FEATURE_NAMES.index("wall_dist_front"):OBS_FEATURE_NAMES.index("wall_dist_right") + 1].reshape(K, 12),
+        time_left[:, None],
+        hs,
+    ]
+    out = np.concatenate([np.asarray(p, dtype=np.float64).reshape(K, -1) for p in parts], axis=1)
+    assert out.shape[1] == STATE_DIM, out.shape
+    return out.astype(np.float32)
