@@ -16,12 +16,13 @@ write g^ST as g + (p - sg(p)), which is exactly g in floating point, unlike
 action is sum_l weight_l * (c_a + s_a tanh(K_l o + beta_l)), i.e. exactly the
 hard leaf's action.
 
-Dtype policy: gate margins w.o - b are computed in float64 in both the torch
-module and the numpy twins, from the same float32 observations and parameters.
-Routing can then disagree between the two only if |w.o - b| is at float64
-rounding level (~1e-15), whereas float32 margins would flip routes within
-~1e-7 of a threshold. Leaf controllers run in the parameter dtype (float32) in
-torch and in float64 in numpy; they agree to ~1e-7 since tanh is 1-Lipschitz.
+Dtype policy: parameters are stored in float32, but all tree arithmetic (gate
+margins w.o - b, leaf controllers) runs in float64 in both the torch module and
+the numpy twins, from the same float32 observations and parameters. Routing can
+then disagree between the two only if |w.o - b| is at float64 rounding level
+(~1e-15), whereas float32 margins flip routes within ~1e-7 of a threshold. The
+torch action is returned in the parameter dtype (float32), the numpy one in
+float64; they differ by float32 rounding only.
 
 Parameters travel as a flat dict[str, np.ndarray] (`export_params`): keys
 "carrier_{i}/{W,b,K,beta,log_std,c_a,s_a}" (float32) plus "format_version".
@@ -242,9 +243,9 @@ def _build_torch_classes() -> dict:
             return obs.double() @ w.T - self.b.double()
 
         def leaf_actions(self, obs):
-            """c_a + s_a tanh(K_l o + beta_l) for every leaf, [B, n_leaves, act_dim]."""
-            u = torch.einsum("lao,bo->bla", self.K, obs.to(self.K.dtype)) + self.beta
-            return self.c_a + self.s_a * torch.tanh(u)
+            """c_a + s_a tanh(K_l o + beta_l) for every leaf, [B, n_leaves, act_dim] float64."""
+            u = torch.einsum("lao,bo->bla", self.K.double(), obs.double()) + self.beta.double()
+            return self.c_a.double() + self.s_a.double() * torch.tanh(u)
 
         def route(self, margins):
             """Hard routing (Eq. hard_gate): leaf [B], nodes [B,D], sides [B,D] (True = right)."""
@@ -275,8 +276,9 @@ def _build_torch_classes() -> dict:
                 raise ValueError(f"tree: tau must be > 0, got {tau}")
             margins = self.gate_margins(obs)
             leaf, nodes, sides = self.route(margins.detach())
-            weight = self.st_leaf_weights(margins, tau).to(self.K.dtype)
+            weight = self.st_leaf_weights(margins, tau)
             action = (weight[:, :, None] * self.leaf_actions(obs)).sum(1)  # Eq. (hard_tree_policy)
+            action = action.to(self.K.dtype)
             return TreeOutput(action, leaf, nodes, sides)
 
         def export_arrays(self) -> dict[str, np.ndarray]:
