@@ -101,8 +101,8 @@ class BatchEnv:
         return out
 
     # --- observation, rows, human --------------------------------------------------
-    def _progress(self, s):
-        return np.clip((s - self.s_start) / np.maximum(self.goal_s - self.s_start, 1e-6), 0.0, 1.0)
+    def _progress(self, s, idx=slice(None)):
+        return np.clip((s - self.s_start[idx]) / np.maximum(self.goal_s[idx] - self.s_start[idx], 1e-6), 0.0, 1.0)
 
     def _observe(self, reset_human=None, snap=None) -> dict:
         cfg = self.cfg
@@ -182,14 +182,17 @@ class BatchEnv:
         final_obs = np.zeros((K, N_CARRIERS, OBS_DIM), np.float32)
         final_state = np.zeros((K, STATE_DIM), np.float32)
         episodes = []
-        if np.any(done):
-            self.snap = snap
-            progress = self._progress(snap.s)
-            time_left = 1.0 - self.t / self.max_steps
-            obs_end = observations(snap, self.walls, self.goal_xy, self.goal_yaw, progress, time_left, cfg)
-            state_end = global_state(snap, obs_end, self.goal_xy, self.goal_yaw, progress, time_left, cfg.human_slot, cfg)
-            for k in np.flatnonzero(done):
-                final_obs[k], final_state[k] = obs_end[k], state_end[k]
+        ended = np.flatnonzero(done)
+        if len(ended):
+            # final observations of the ended envs only, then reset them and patch the snapshot
+            sub = snap.take(ended)
+            progress = self._progress(sub.s, ended)
+            time_left = 1.0 - self.t[ended] / self.max_steps
+            obs_end = observations(sub, self.walls, self.goal_xy[ended], self.goal_yaw[ended], progress, time_left, cfg)
+            final_obs[ended] = obs_end
+            final_state[ended] = global_state(sub, obs_end, self.goal_xy[ended], self.goal_yaw[ended], progress,
+                                              time_left, cfg.human_slot, cfg)
+            for j, k in enumerate(ended):
                 n = int(self.t[k])
                 episodes.append({
                     "scenario": cfg.scenario, "success": bool(success[k]), "drop": bool(drop[k]),
@@ -198,11 +201,12 @@ class BatchEnv:
                     "completion_time": n * cfg.control_dt if success[k] else float("nan"),
                     "tilt": acc["tilt"][k] / n, "heading_error": acc["head"][k] / n,
                     "height_error": acc["height"][k] / n, "min_clearance": float(self._min_clear[k]),
-                    "progress_per_step": float(progress[k]) / n, "final_progress": float(progress[k]),
+                    "progress_per_step": float(progress[j]) / n, "final_progress": float(progress[j]),
                 })
                 self._reset_env(k)
-        # after resets the state changed; otherwise reuse this step's snapshot
-        out = self._observe(reset_human=done, snap=None if episodes else snap)
+            snap.put(ended, snapshot(self.phys, self.route, self.walls, self.s_prev[ended], self.goal_s[ended],
+                                     cfg, idx=ended))
+        out = self._observe(reset_human=done, snap=snap)
         out.update(reward=reward, terminated=terminated, truncated=truncated, collision=collision.copy(),
                    drop=drop, success=success, final_obs=final_obs, final_state=final_state, episodes=episodes)
         return out

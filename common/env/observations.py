@@ -57,26 +57,37 @@ class Snapshot:
     route_yaw: np.ndarray   # [K] route heading at the projection
     contact: np.ndarray     # [K] bool: any wall contact
     clearance: np.ndarray   # [K] min signed distance of the formation (payload points, carrier discs) to walls
+    pay_dist: np.ndarray    # [K,P] signed distance of each payload boundary point to the nearest wall
+    pay_vec: np.ndarray     # [K,P,2] vector from each payload boundary point to its nearest wall point
+
+    def take(self, idx) -> "Snapshot":
+        return Snapshot(**{name: getattr(self, name)[idx] for name in self.__dataclass_fields__})
+
+    def put(self, idx, other: "Snapshot"):
+        """Overwrite envs idx with another snapshot of those envs."""
+        for name in self.__dataclass_fields__:
+            getattr(self, name)[idx] = getattr(other, name)
 
 
-def snapshot(phys: TransportPhysics, route, walls: WallSet, s_prev, goal_s, cfg: EnvConfig) -> Snapshot:
-    cp = phys.carrier_pose
-    pos = phys.payload_pos
-    yaw, tilt = quat_to_yaw_tilt(phys.payload_quat)
+def snapshot(phys: TransportPhysics, route, walls: WallSet, s_prev, goal_s, cfg: EnvConfig, idx=None) -> Snapshot:
+    """Snapshot of all envs, or of envs ``idx`` only (then s_prev, goal_s are for those envs)."""
+    sel = slice(None) if idx is None else idx
+    cp = phys.carrier_pose[sel]
+    pos = phys.payload_pos[sel]
+    yaw, tilt = quat_to_yaw_tilt(phys.payload_quat[sel])
     pxy = pos[:, :2].copy()
     s = route.project(pxy, s_prev)
     s_look = np.minimum(s + cfg.lookahead, goal_s)
     look_xy, look_yaw = route.pose(s_look)
     _, route_yaw = route.pose(s)
-    pts = pxy[:, None, :] + from_frame(np.broadcast_to(PAYLOAD_POINTS_LOCAL, (len(pxy),) + PAYLOAD_POINTS_LOCAL.shape),
-                                       yaw[:, None])
-    d_pay = walls.signed_distance(pts).min(axis=(-1, -2))
+    pts = pxy[:, None, :] + from_frame(PAYLOAD_POINTS_LOCAL[None], yaw[:, None])
+    pay_dist, pay_vec = walls.nearest(pts)
     d_car = walls.signed_distance(cp[..., :2]).min(axis=(-1, -2)) - CARRIER_RADIUS
     return Snapshot(
-        cxy=cp[..., :2].copy(), cyaw=cp[..., 2].copy(), cvel=phys.carrier_vel.copy(), pxy=pxy, pz=pos[:, 2].copy(),
-        pyaw=yaw, tilt=tilt, pvel=phys.payload_vel.copy(), strain=phys.grasp_strain(), s=s,
-        look_xy=look_xy, look_yaw=look_yaw, route_yaw=route_yaw, contact=phys.contact.copy(),
-        clearance=np.minimum(d_pay, d_car),
+        cxy=cp[..., :2].copy(), cyaw=cp[..., 2].copy(), cvel=phys.carrier_vel[sel], pxy=pxy, pz=pos[:, 2].copy(),
+        pyaw=yaw, tilt=tilt, pvel=phys.payload_vel[sel], strain=phys.grasp_strain()[sel], s=s,
+        look_xy=look_xy, look_yaw=look_yaw, route_yaw=route_yaw, contact=phys.contact[sel].copy(),
+        clearance=np.minimum(pay_dist.min(axis=1), d_car), pay_dist=pay_dist, pay_vec=pay_vec,
     )
 
 
@@ -131,9 +142,7 @@ def observations(snap: Snapshot, walls: WallSet, goal_xy, goal_yaw, progress, ti
     origin = np.broadcast_to(snap.cxy[:, :, None, :], dirs.shape)
     ray = walls.ray_distance(origin, dirs, RAY_MAX + CARRIER_RADIUS) - CARRIER_RADIUS
     put(np.clip(ray, -CARRIER_RADIUS, RAY_MAX) / RAY_MAX)
-    pts = snap.pxy[:, None, :] + from_frame(np.broadcast_to(PAYLOAD_POINTS_LOCAL, (K,) + PAYLOAD_POINTS_LOCAL.shape),
-                                            snap.pyaw[:, None])
-    d, vec = walls.nearest(pts)                                               # [K,P], [K,P,2]
+    d, vec = snap.pay_dist, snap.pay_vec                                      # [K,P], [K,P,2]
     p = np.argmin(d, axis=1)
     dmin = d[np.arange(K), p]
     vmin = vec[np.arange(K), p]

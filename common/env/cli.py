@@ -1,0 +1,117 @@
+"""`sage env render`, `sage bench env`, `sage bench scripted`."""
+from __future__ import annotations
+
+import json
+import time
+
+
+def _render(args):
+    from common.env.render import render
+    from common.env.scenarios import SCENARIOS
+
+    names = list(SCENARIOS) if args.all else [args.scenario]
+    records = render(args.out, names, seed=args.seed)
+    for name, rec in records.items():
+        print(f"{name}: scripted {'success' if rec['success'] else 'failure'} in {rec['steps']} steps")
+    print(f"wrote {args.out}")
+
+
+def bench_env(scenario: str = "maze", num_envs: int = 16, steps: int = 100, seed: int = 0) -> dict:
+    """Control steps/s of BatchEnv (random actions, obs and safety rows included) vs the raw
+    physics bound: the same model stepped the same number of physics steps by mujoco.rollout
+    (one thread, from the env's own states and tracker targets)."""
+    import mujoco
+    import mujoco.rollout
+    import numpy as np
+
+    from common.env.batch_env import BatchEnv
+    from common.env.config import EnvConfig
+
+    env = BatchEnv(EnvConfig(scenario), num_envs=num_envs, seed=seed)
+    env.reset()
+    rng = np.random.default_rng(seed)
+    acts = rng.uniform(-1.0, 1.0, (steps, num_envs, 9))
+    env.step(acts[0])  # warm-up
+    t0 = time.perf_counter()
+    for t in range(steps):
+        env.step(acts[t])
+    t_env = time.perf_counter() - t0
+    m = env.phys.model
+    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+    state = np.zeros((num_envs, mujoco.mj_stateSize(m, spec)))
+    for k, d in enumerate(env.phys.datas):
+        mujoco.mj_getState(m, d, state[k], spec)
+    nphys = steps * env.cfg.substeps
+    ctrl = np.repeat(env.phys._ctrl[:, None, :], nphys, axis=1)
+    data = mujoco.MjData(m)
+    mujoco.rollout.rollout(m, data, state, ctrl[:, :1])  # warm-up
+    t0 = time.perf_counter()
+    mujoco.rollout.rollout(m, data, state, ctrl)
+    t_raw = time.perf_counter() - t0
+    env_sps = steps * num_envs / t_env
+    raw_sps = steps * num_envs / t_raw
+    return {"scenario": scenario, "num_envs": num_envs, "control_steps": steps, "substeps": env.cfg.substeps,
+            "env_steps_per_s": env_sps, "raw_physics_env_steps_per_s": raw_sps, "ratio": env_sps / raw_sps}
+
+
+def bench_scripted(episodes: int = 20, scenarios=None, seed: int = 0, num_envs: int = 10) -> dict:
+    """Success rate of the scripted reference controller per scenario (first `episodes` episodes)."""
+    from common.env.batch_env import BatchEnv
+    from common.env.config import EnvConfig
+    from common.env.metrics import aggregate
+    from common.env.scenarios import SCENARIOS
+
+    out = {}
+    for name in scenarios or list(SCENARIOS):
+        env = BatchEnv(EnvConfig(name), num_envs=min(num_envs, episodes), seed=seed)
+        env.reset()
+        eps = []
+        while len(eps) < episodes:
+            eps += env.step(env.scripted_actions())["episodes"]
+        agg = aggregate(eps[:episodes])
+        out[name] = {k: agg[k] for k in ("success_rate", "drop_rate", "col_per_1k", "completion_time",
+                                         "min_clearance", "episodes")}
+    out["mean_success_rate"] = sum(v["success_rate"] for k, v in out.items()) / len(out)
+    return out
+
+
+def _bench_env(args):
+    res = bench_env(args.scenario, args.num_envs, args.steps, args.seed)
+    if args.scripted:
+        res["scripted"] = bench_scripted(args.episodes, seed=args.seed)
+    print(json.dumps(res, indent=None if args.json else 2))
+
+
+def _bench_scripted(args):
+    res = bench_scripted(args.episodes, [args.scenario] if args.scenario else None, seed=args.seed)
+    print(json.dumps(res, indent=None if args.json else 2))
+
+
+def register(commands, bench):
+    from common.env.scenarios import SCENARIOS
+
+    env_p = commands.add_parser("env", help="transport environment tools (render scenarios)")
+    sub = env_p.add_subparsers(dest="env_command", metavar="ENV_COMMAND")
+    r = sub.add_parser("render", help="top-down scenario figure with a scripted rollout overlaid")
+    r.add_argument("--scenario", choices=sorted(SCENARIOS), default="maze")
+    r.add_argument("--all", action="store_true", help="3x3 grid of all nine scenarios")
+    r.add_argument("--out", default="scenario.png")
+    r.add_argument("--seed", type=int, default=0)
+    r.set_defaults(func=_render)
+
+    b = bench.add_parser("env", help="env control steps/s vs raw mujoco.rollout physics bound")
+    b.add_argument("--json", action="store_true")
+    b.add_argument("--scenario", choices=sorted(SCENARIOS), default="maze")
+    b.add_argument("--num-envs", type=int, default=16)
+    b.add_argument("--steps", type=int, default=100)
+    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--scripted", action="store_true", help="also report scripted success rates")
+    b.add_argument("--episodes", type=int, default=20)
+    b.set_defaults(func=_bench_env)
+
+    s = bench.add_parser("scripted", help="scripted reference controller success rate per scenario")
+    s.add_argument("--json", action="store_true")
+    s.add_argument("--episodes", type=int, default=20)
+    s.add_argument("--scenario", choices=sorted(SCENARIOS), default=None)
+    s.add_argument("--seed", type=int, default=0)
+    s.set_defaults(func=_bench_scripted)
