@@ -297,13 +297,18 @@ def barrier_values(geom: SafetyGeometry, walls: np.ndarray, cfg: SafetyConfig) -
     ``carrier_wall [K,3,W]``, ``payload_wall [K,P,W]``, ``formation [K,3,2]``
     (``(h_lo, h_hi)`` per pair) and ``min [K]`` over all of them.
     """
-    walls = _check_walls(walls, geom.num_envs)
-    K = geom.num_envs
-    sd_c = point_box_distance(geom.carrier_xy, walls)[0] - cfg.carrier_radius
-    sd_p = point_box_distance(payload_points_world(geom), walls)[0] - cfg.payload_margin
-    dist, _ = _pair_terms(geom.carrier_xy)
-    form = np.stack([dist - (geom.pair_rest - cfg.grasp_tol),
-                     (geom.pair_rest + cfg.grasp_tol) - dist], -1)
+    return barriers_at_points(geom.carrier_xy, payload_points_world(geom), geom.pair_rest, walls, cfg)
+
+
+def barriers_at_points(carrier_xy, payload_points, pair_rest, walls, cfg: SafetyConfig) -> dict:
+    """:func:`barrier_values` for explicit world points ``carrier_xy [K,3,2]``,
+    ``payload_points [K,P,2]`` (e.g. the predictor's next points)."""
+    K = carrier_xy.shape[0]
+    walls = _check_walls(walls, K)
+    sd_c = point_box_distance(carrier_xy, walls)[0] - cfg.carrier_radius
+    sd_p = point_box_distance(payload_points, walls)[0] - cfg.payload_margin
+    dist, _ = _pair_terms(carrier_xy)
+    form = np.stack([dist - (pair_rest - cfg.grasp_tol), (pair_rest + cfg.grasp_tol) - dist], -1)
     mins = [form.reshape(K, -1).min(1)]
     if walls.shape[1]:
         mins += [sd_c.reshape(K, -1).min(1)]
