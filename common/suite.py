@@ -1,0 +1,126 @@
+"""`sage suite`: methods × scenarios × seeds under a budget, resumable, spread over cores.
+
+Each run is an independent `sage train` subprocess (its own in-process
+services, one core's worth of work) followed by a deployment evaluation; the
+suite then writes one JSON result per run (the schema `common.report` reads).
+A run whose result file exists is skipped, so an interrupted suite resumes
+where it stopped. Runs are scheduled over ``--workers`` parallel slots
+(default: the number of cores).
+"""
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from common.report import FAMILIES, METHODS
+
+
+@dataclass
+class SuiteConfig:
+    methods: list[str] = field(default_factory=lambda: list(METHODS))
+    scenarios: list[str] = field(default_factory=lambda: [s for f in FAMILIES.values() for s in f])
+    seeds: list[int] = field(default_factory=lambda: [0, 1])
+    minutes_per_run: float = 5.0
+    eval_episodes: int = 20
+    envs_per_actor: int = 16
+    workers: int = max(1, os.cpu_count() or 1)
+    out_dir: str = "results/suite"
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    method: str
+    scenario: str
+    seed: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.method}__{self.scenario}__seed{self.seed}"
+
+
+def plan(cfg: SuiteConfig) -> list[RunSpec]:
+    unknown = [m for m in cfg.methods if m not in METHODS]
+    if unknown:
+        raise ValueError(f"unknown methods {unknown}; choose from {METHODS}")
+    return [RunSpec(m, s, k) for s, k, m in itertools.product(cfg.scenarios, cfg.seeds, cfg.methods)]
+
+
+def train_command(cfg: SuiteConfig, spec: RunSpec, run_dir: Path) -> list[str]:
+    return [
+        sys.executable, "-m", "common.cli", "train",
+        "--method", spec.method, "--scenario", spec.scenario, "--seed", str(spec.seed),
+        "--minutes", str(cfg.minutes_per_run), "--envs-per-actor", str(cfg.envs_per_actor),
+        "--eval-episodes", str(cfg.eval_episodes), "--run-dir", str(run_dir), "--quiet",
+    ]
+
+
+def collect_result(spec: RunSpec, run_dir: Path, budget: dict) -> dict:
+    """Build the report's result record from a finished run directory."""
+    metrics_path = run_dir / "metrics.jsonl"
+    eval_path = run_dir / "eval.json"
+    if not eval_path.exists():
+        raise FileNotFoundError(f"{run_dir}: no eval.json (training did not finish)")
+    curve = []
+    if metrics_path.exists():
+        rows = [json.loads(line) for line in metrics_path.read_text().splitlines() if line.strip()]
+        total = max((r.get("env_steps", 0) for r in rows), default=0) or 1
+        for r in rows:
+            point = dict(r)
+            point.setdefault("progress", r.get("env_steps", 0) / total)
+            curve.append(point)
+    return {
+        "method": spec.method, "scenario": spec.scenario, "seed": spec.seed,
+        "eval": json.loads(eval_path.read_text()), "train_curve": curve, "budget": budget,
+        "run_dir": str(run_dir),
+    }
+
+
+def run_suite(cfg: SuiteConfig, log=print) -> list[Path]:
+    out = Path(cfg.out_dir)
+    (out / "runs").mkdir(parents=True, exist_ok=True)
+    (out / "suite_config.json").write_text(json.dumps(asdict(cfg), indent=2))
+    pending = [s for s in plan(cfg) if not (out / f"{s.name}.json").exists()]
+    log(f"suite: {len(plan(cfg)) - len(pending)} done, {len(pending)} to run on {cfg.workers} workers")
+    running: dict[RunSpec, tuple[subprocess.Popen, float]] = {}
+    written: list[Path] = []
+    failures = 0
+    # A single-threaded torch per run keeps `workers` runs from oversubscribing the cores.
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", SAGE_TORCH_THREADS="1")
+    while pending or running:
+        while pending and len(running) < cfg.workers:
+            spec = pending.pop(0)
+            run_dir = out / "runs" / spec.name
+            log_file = open(out / "runs" / f"{spec.name}.log", "w")
+            proc = subprocess.Popen(train_command(cfg, spec, run_dir), stdout=log_file,
+                                    stderr=subprocess.STDOUT, env=env)
+            running[spec] = (proc, time.time())
+        time.sleep(1.0)
+        for spec, (proc, started) in list(running.items()):
+            if proc.poll() is None:
+                continue
+            del running[spec]
+            run_dir = out / "runs" / spec.name
+            if proc.returncode != 0:
+                failures += 1
+                log(f"suite: {spec.name} FAILED (exit {proc.returncode}); see {run_dir}.log")
+                continue
+            budget = {"minutes": cfg.minutes_per_run, "wall_s": round(time.time() - started, 1),
+                      "envs_per_actor": cfg.envs_per_actor, "eval_episodes": cfg.eval_episodes}
+            record = collect_result(spec, run_dir, budget)
+            path = out / f"{spec.name}.json"
+            tmp = path.with_suffix(".json.tmp")
+            tmp.write_text(json.dumps(record, indent=1))
+            os.replace(tmp, path)  # atomic: a half-written result never counts as done
+            written.append(path)
+            ev = record["eval"]
+            log(f"suite: {spec.name} SR={ev.get('success_rate', float('nan')):.2f} "
+                f"Col/1k={ev.get('col_per_1k', float('nan')):.1f} ({budget['wall_s']:.0f}s)")
+    if failures:
+        log(f"suite: {failures} runs failed")
+    return written
