@@ -22,7 +22,7 @@ from common.env.scenarios import WALL_HEIGHT, ScenarioSpec
 
 
 def _f(*xs) -> str:
-    return " ".join(f"{x:.6g}" for x in xs)
+    return " ".join(f"{x:.12g}" for x in xs)
 
 
 def build_mjcf(spec: ScenarioSpec, cfg: EnvConfig) -> str:
@@ -34,7 +34,7 @@ def build_mjcf(spec: ScenarioSpec, cfg: EnvConfig) -> str:
     kv_yaw = 2.0 * math.sqrt(cfg.kp_yaw * i_yaw)
     walls = "\n".join(
         f'    <geom name="wall{k}" type="box" pos="{_f(cx, cy, WALL_HEIGHT / 2)}" '
-        f'size="{_f(hx, hy, WALL_HEIGHT / 2)}" euler="0 0 {yaw:.9g}" class="wall"/>'
+        f'size="{_f(hx, hy, WALL_HEIGHT / 2)}" euler="0 0 {yaw:.12g}" class="wall"/>'
         for k, (cx, cy, hx, hy, yaw) in enumerate(spec.walls)
     )
     carriers, actuators, equalities = [], [], []
