@@ -56,7 +56,7 @@ class FakeBatchEnv:
         return out
 
 
-def fake_propose(params, obs, C, c, row_mask, fixed_mask, human_action, kappa, rng, mode):
+def fake_propose(params, obs, C, c, row_mask, fixed_mask, human_action, kappa, rng, mode, use_sail=True):
     K = obs.shape[0]
     a_st = np.tanh(obs.reshape(K, -1)[:, :D] * params["carrier_0/W"].ravel()[0])
     a_bar = a_st.copy()

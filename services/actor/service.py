@@ -135,7 +135,7 @@ class ActorService(Service):
 
     # ------------------------------------------------------------- loop
     def _make_env(self):
-        from common.env import BatchEnv
+        from common.env.batch_env import BatchEnv
 
         return BatchEnv(self.cfg.env_config(), self.cfg.envs_per_actor, seed=self.cfg.seed * 1000 + self.actor_id)
 
@@ -188,7 +188,8 @@ class ActorService(Service):
             chunk_incarnation = p["incarnation"]
             kappa = float(p["settings"].get("kappa", 0.0)) if self.uses_sail else 0.0
             prop = self._propose(p["params"], out["obs"], out["C"], out["c"], out["row_mask"],
-                                 out["fixed_mask"], out["human_action"], kappa, self.rng, "train")
+                                 out["fixed_mask"], out["human_action"], kappa, self.rng, "train",
+                                 use_sail=self.uses_sail)
             a_prop = np.asarray(prop["a_prop"], dtype=np.float64)
             if self.shielded:
                 a_exec = self.filter_actions(a_prop, out["C"], out["c"], out["row_mask"], out["fixed_mask"])
@@ -211,7 +212,10 @@ class ActorService(Service):
             self.steps_rate.add(self.env_steps)
             self.m.env_steps.labels(**self.labels).inc(K)
             for ep in nxt.get("episodes", []):
-                ep = {k: float(v) for k, v in ep.items() if isinstance(v, (int, float, np.number, bool, np.bool_))}
+                # numbers only; non-finite entries (completion_time of a failed
+                # episode is NaN) are left out rather than failing the chunk
+                ep = {k: float(v) for k, v in ep.items()
+                      if isinstance(v, (int, float, np.number, bool, np.bool_)) and np.isfinite(float(v))}
                 episodes.append(ep)
                 self.m.episodes.labels(**self.labels).inc()
                 if "success" in ep:

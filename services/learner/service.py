@@ -61,8 +61,8 @@ class MetricsLog:
 
 
 def _default_method(cfg):
-    from common.algos import make_method
-    from common.env import BatchEnv
+    from common.algos.methods import make_method
+    from common.env.batch_env import BatchEnv
 
     probe = BatchEnv(cfg.env_config(), 1, seed=cfg.seed)  # only for obs/state dims
     return make_method(cfg.method, cfg.algo_config(), probe.obs_dim, probe.state_dim)

@@ -47,7 +47,17 @@ class ShieldService(Service):
                           "queue_depth": float(self._queue.qsize() if self._queue else 0)}}
 
     # ------------------------------------------------------------- loop
+    def warm_up(self) -> None:
+        """One tiny solve before serving, so a JIT-compiled backend does not
+        time out the first real query (numba compiles on first call)."""
+        try:
+            self.solve(np.zeros((1, wire.ACT_DIM)), np.zeros((1, 1, wire.ACT_DIM)), np.zeros((1, 1)),
+                       np.ones((1, 1), bool), np.zeros((1, wire.ACT_DIM), bool))
+        except Exception as exc:  # noqa: BLE001 - a broken solver is reported per query later
+            self.log.warning("warm-up solve failed: %s", exc)
+
     def run(self) -> int:
+        self.warm_up()
         self._queue = q = self.bus.serve(keys.shield(self.cfg.run_id))
         self.listen_control()
         self.state = "running"

@@ -1,0 +1,108 @@
+"""``sage train``: the main job (in-process services by default)."""
+from __future__ import annotations
+
+import json
+import logging
+import sys
+from pathlib import Path
+
+from services.config import METHODS, TrainConfig
+
+
+def register(commands, bench) -> None:
+    d = TrainConfig()
+    p = commands.add_parser("train", help="train a method with actor/shield/learner services")
+    p.add_argument("--scenario", default=d.scenario)
+    p.add_argument("--method", default=d.method, choices=METHODS)
+    p.add_argument("--updates", type=int, default=d.updates, help="learner updates (budget)")
+    p.add_argument("--minutes", type=float, default=d.minutes, help="wall-clock budget (whichever first)")
+    p.add_argument("--actors", type=int, default=d.actors)
+    p.add_argument("--envs-per-actor", type=int, default=d.envs_per_actor)
+    p.add_argument("--chunk-len", type=int, default=d.chunk_len)
+    p.add_argument("--max-lag", type=int, default=d.max_lag)
+    p.add_argument("--seed", type=int, default=d.seed)
+    p.add_argument("--run-id", default="")
+    p.add_argument("--run-dir", default="")
+    p.add_argument("--mode", default=d.mode, choices=("inprocess", "supervised"))
+    p.add_argument("--eval-episodes", type=int, default=d.eval_episodes)
+    p.add_argument("--metrics-port", type=int, default=0, help="Prometheus port (in-process registry); 0 = off")
+    p.add_argument("--config", default=None, help="start from a saved config JSON (flags override)")
+    p.add_argument("--quiet", action="store_true", help="no live progress line")
+    p.set_defaults(func=cmd_train)
+
+
+def config_from_args(args) -> TrainConfig:
+    cfg = TrainConfig.load(args.config) if args.config else TrainConfig()
+    cfg.scenario, cfg.method, cfg.updates, cfg.minutes = args.scenario, args.method, args.updates, args.minutes
+    cfg.actors, cfg.envs_per_actor, cfg.chunk_len = args.actors, args.envs_per_actor, args.chunk_len
+    cfg.max_lag, cfg.seed, cfg.mode, cfg.eval_episodes = args.max_lag, args.seed, args.mode, args.eval_episodes
+    cfg.ports.inprocess = args.metrics_port
+    if args.run_id:
+        cfg.run_id = args.run_id
+    if args.run_dir:
+        cfg.run_dir = args.run_dir
+    if cfg.mode == "supervised":
+        cfg.actor.exit_on_unhealthy = True  # let the supervisor see and restart it
+    return cfg.resolve()
+
+
+def final_eval(cfg: TrainConfig, params: dict) -> dict:
+    from common.evaluation import evaluate_policy
+
+    shielded = cfg.method != "happo"
+    return evaluate_policy(params, cfg.env_config(), cfg.eval_episodes, seed=10_000 + cfg.seed,
+                           shielded=shielded, max_steps=cfg.eval_max_steps or None)
+
+
+def cmd_train(args) -> int:
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    cfg = config_from_args(args)
+    run = Path(cfg.run_dir)
+    cfg_path = cfg.save(run / "config.json")
+    print(f"run {cfg.run_id}: {cfg.method} on {cfg.scenario}, {cfg.actors} actor(s) x {cfg.envs_per_actor} envs, "
+          f"mode {cfg.mode}, run dir {run}", file=sys.stderr)
+    if cfg.mode == "supervised":
+        try:
+            from deploy.supervisor import run_supervised
+        except ImportError as exc:
+            print(f"supervised mode needs deploy/supervisor.py ({exc})", file=sys.stderr)
+            return 2
+        code = int(run_supervised(str(cfg_path)) or 0)
+        if code:
+            return code
+        from common.checkpoint import load_latest
+
+        ck = load_latest(run / "checkpoints")
+        params = _params_from_checkpoint(cfg, ck) if ck else None
+        summary = {"mode": "supervised", "version": int(ck["version"]) if ck else None}
+    else:
+        from services.inprocess import run_inprocess
+
+        out = run_inprocess(cfg, progress=not args.quiet)
+        params = out.pop("params")
+        out.pop("status", None)
+        summary = {"mode": "inprocess", **out}
+    if cfg.eval_episodes > 0 and params is not None:
+        summary["eval"] = final_eval(cfg, params)
+        e = summary["eval"]
+        print(f"eval ({e['episodes_finished']} episodes, {'shielded' if e['shielded'] else 'unshielded'}): "
+              f"SR {e['success_rate']:.2f}  return {e['return_mean']:.2f}  col/1k {e['col_per_1k']:.2f}  "
+              f"intervention {e['intervention_rate']:.2f}", file=sys.stderr)
+    (run / "summary.json").write_text(json.dumps(summary, indent=2, default=_num) + "\n")
+    print(json.dumps({"run_dir": str(run), "version": summary.get("version"),
+                      "updates": summary.get("updates")}))
+    return 0
+
+
+def _params_from_checkpoint(cfg: TrainConfig, ck: dict) -> dict:
+    from services.learner.service import _default_method
+
+    method = _default_method(cfg)
+    method.load_state_dict(ck["method"])
+    return method.policy_params()
+
+
+def _num(o):
+    if hasattr(o, "tolist"):
+        return o.tolist()
+    return str(o)
