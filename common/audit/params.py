@@ -188,7 +188,7 @@ def feature_names(obs_dim: int, names: list[str] | None = None) -> list[str]:
     """The environment's observation feature names when they fit ``obs_dim``, else ``o[j]``."""
     if names is None:
         try:
-            from common.env import OBS_FEATURE_NAMES as names  # type: ignore[no-redef]
+            from common.env.observations import OBS_FEATURE_NAMES as names  # type: ignore[no-redef]
         except ImportError:
             names = None
     if names is not None and len(names) == obs_dim:

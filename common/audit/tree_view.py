@@ -27,7 +27,9 @@ def format_linear(weights: np.ndarray, names: list[str], top: int) -> str:
     """``0.82·a − 0.41·b + (7 more, |w|≤0.1)``: the ``top`` largest-|w| terms, the rest folded."""
     weights = np.asarray(weights, dtype=np.float64)
     order = np.argsort(-np.abs(weights), kind="stable")
-    shown, rest = order[:top], order[top:]
+    # terms that would print as 0.00 are folded into the remainder too
+    n_shown = max(1, min(top, int(np.sum(np.abs(weights) >= 0.005))))
+    shown, rest = order[:n_shown], order[n_shown:]
     parts = []
     for n, j in enumerate(shown):
         w = weights[j]

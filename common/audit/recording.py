@@ -1,0 +1,190 @@
+"""Decision traces of evaluation runs (Sec. IV-C): recording format and recorder.
+
+A ``Recording`` holds, per control step and carrier, the root-to-leaf predicate
+sequence (node ids and sides), the leaf, the nominal command a_st (Eq.
+hard_tree_policy), the executed command (after the exact CBF-QP, Eq. qpshield),
+the QP's active rows, plus route progress, payload pose and episode index. It
+also keeps the observations, the safety rows and the flat policy params so
+that decisions can be re-drawn and re-executed later (the deployment bundle
+test replays them). Stored as a compressed .npz with no pickled objects;
+metadata is one JSON string.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+
+RECORDING_VERSION = 1
+_PARAM_PREFIX = "params::"
+
+
+@dataclass
+class Recording:
+    """Steps of finished episodes, concatenated; S steps, N carriers, M rows, d = 3N."""
+
+    episode: np.ndarray       # [S] int episode index (0..E-1)
+    t: np.ndarray             # [S] int step within the episode
+    obs: np.ndarray           # [S, N, obs_dim] observations the trees saw
+    nodes: np.ndarray         # [S, N, depth] node ids on the root-to-leaf route
+    sides: np.ndarray         # [S, N, depth] True = right (w.o > b)
+    leaf: np.ndarray          # [S, N] leaf index
+    a_st: np.ndarray          # [S, d] nominal tree command
+    a_exec: np.ndarray        # [S, d] executed command
+    active: np.ndarray        # [S, M] QP rows active at the solution
+    progress: np.ndarray      # [S] route progress in [0, 1] at the observation
+    payload_pose: np.ndarray  # [S, 3] payload (x, y, yaw) at the observation
+    C: np.ndarray             # [S, M, d] safety rows C a >= c
+    c: np.ndarray             # [S, M]
+    row_mask: np.ndarray      # [S, M]
+    fixed_mask: np.ndarray    # [S, d] human-held action components
+    human_action: np.ndarray  # [S, d]
+    params: dict = field(default_factory=dict)  # flat policy params used
+    meta: dict = field(default_factory=dict)    # scenario, seed, shielded, feature names, episode metrics
+
+    _ARRAYS = ("episode", "t", "obs", "nodes", "sides", "leaf", "a_st", "a_exec", "active", "progress",
+               "payload_pose", "C", "c", "row_mask", "fixed_mask", "human_action")
+
+    def __post_init__(self) -> None:
+        S = len(self.episode)
+        for name in self._ARRAYS:
+            if len(getattr(self, name)) != S:
+                raise ValueError(f"Recording.{name} has {len(getattr(self, name))} steps, episode has {S}")
+
+    @property
+    def n_steps(self) -> int:
+        return len(self.episode)
+
+    @property
+    def n_agents(self) -> int:
+        return self.leaf.shape[1]
+
+    @property
+    def n_episodes(self) -> int:
+        return int(len(np.unique(self.episode)))
+
+    def select(self, mask: np.ndarray) -> "Recording":
+        kw = {n: getattr(self, n)[mask] for n in self._ARRAYS}
+        return Recording(**kw, params=self.params, meta=self.meta)
+
+    def save(self, path: str | Path) -> Path:
+        path = Path(path)
+        if path.suffix != ".npz":
+            raise ValueError(f"recordings are .npz files, got {path}")
+        arrays = {n: np.asarray(getattr(self, n)) for n in self._ARRAYS}
+        arrays.update({_PARAM_PREFIX + k: np.asarray(v) for k, v in self.params.items()})
+        meta = dict(self.meta, recording_version=RECORDING_VERSION)
+        arrays["meta_json"] = np.array(json.dumps(meta))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(path, **arrays)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Recording":
+        path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"no such recording: {path}")
+        with np.load(path, allow_pickle=False) as data:
+            missing = [n for n in cls._ARRAYS + ("meta_json",) if n not in data.files]
+            if missing:
+                raise ValueError(f"{path} is not a SAGE recording (missing {missing})")
+            kw = {n: data[n] for n in cls._ARRAYS}
+            params = {k[len(_PARAM_PREFIX):]: data[k] for k in data.files if k.startswith(_PARAM_PREFIX)}
+            meta = json.loads(str(data["meta_json"]))
+        if meta.get("recording_version") != RECORDING_VERSION:
+            raise ValueError(f"{path}: recording version {meta.get('recording_version')} != {RECORDING_VERSION}")
+        return cls(**kw, params=params, meta=meta)
+
+
+def save(recording: Recording, path: str | Path) -> Path:
+    return recording.save(path)
+
+
+def load(path: str | Path) -> Recording:
+    return Recording.load(path)
+
+
+def record_episodes(params: dict, env_cfg, episodes: int, seed: int, shielded: bool = True,
+                    max_steps: int | None = None) -> Recording:
+    """Run ``episodes`` deterministic deployment episodes and record every decision.
+
+    Deployment is the nominal hard-tree command (``team_forward_np``), the human
+    block substituted where ``fixed_mask`` is set, then the exact joint CBF-QP
+    (``solve_cbf_qp``) when ``shielded``, else the command clipped to the box.
+    One env per episode, batched; an env's steps after its first episode ends are
+    discarded (the env auto-resets). ``max_steps`` caps the loop (default: the
+    env config's ``max_steps`` + 1).
+    """
+    from common.env.batch_env import BatchEnv
+    from common.audit.params import feature_names
+    from common.qp import solve_cbf_qp
+    from common.tree import team_forward_np
+
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    env = BatchEnv(env_cfg, episodes, seed)
+    out = env.reset()
+    limit = max_steps if max_steps is not None else int(env.max_steps) + 1
+    goal_xy = np.asarray(env.goal_xy, np.float64).copy()  # goals of the first episodes (set at reset)
+    running = np.ones(episodes, dtype=bool)
+    t = np.zeros(episodes, dtype=np.int64)
+    rows: dict[str, list] = {n: [] for n in Recording._ARRAYS}
+    episode_metrics: list[dict | None] = [None] * episodes
+    for _ in range(limit):
+        if not running.any():
+            break
+        obs = out["obs"]
+        a_st, leaves, nodes, sides = team_forward_np(params, obs)
+        fixed = np.asarray(out["fixed_mask"], dtype=bool)
+        a_prop = np.where(fixed, out["human_action"], a_st)
+        if shielded:
+            res = solve_cbf_qp(a_prop, out["C"], out["c"], out["row_mask"], fixed)  # Eq. (qpshield)
+            a_exec, active = res.a_exec, res.active
+        else:
+            a_exec = np.clip(a_prop, -1.0, 1.0)
+            active = np.zeros(out["row_mask"].shape, dtype=bool)
+        step = {"episode": np.arange(episodes), "t": t, "obs": obs, "nodes": nodes, "sides": sides,
+                "leaf": leaves, "a_st": a_st, "a_exec": a_exec, "active": active,
+                "progress": out["progress"], "payload_pose": payload_pose(env),
+                "C": out["C"], "c": out["c"], "row_mask": out["row_mask"], "fixed_mask": fixed,
+                "human_action": out["human_action"]}
+        for name in Recording._ARRAYS:
+            rows[name].append(np.asarray(step[name])[running])
+        out = env.step(a_exec)
+        done = np.asarray(out["terminated"]) | np.asarray(out["truncated"])
+        metrics = out.get("episodes", [])  # one dict per env that ended this step, in env order
+        for k, e in enumerate(np.flatnonzero(done)):
+            if running[e] and k < len(metrics):
+                episode_metrics[e] = _jsonable(metrics[k])
+        running &= ~done
+        t = t + 1
+    arrays = {n: np.concatenate(v) for n, v in rows.items()}
+    arrays["leaf"] = arrays["leaf"].astype(np.int16)
+    arrays["nodes"] = arrays["nodes"].astype(np.int16)
+    order = np.lexsort((arrays["t"], arrays["episode"]))  # episode-major
+    arrays = {n: v[order] for n, v in arrays.items()}
+    meta = {"scenario": getattr(env_cfg, "scenario", None), "seed": seed, "shielded": shielded,
+            "episodes": episodes, "unfinished": int(running.sum()), "episode_metrics": episode_metrics,
+            "feature_names": feature_names(env.obs_dim), "goal_xy": goal_xy.tolist(),
+            "walls": np.asarray(getattr(env, "walls_array", np.zeros((0, 5))), np.float64).tolist()}
+    return Recording(**arrays, params={k: np.asarray(v) for k, v in params.items()}, meta=meta)
+
+
+def payload_pose(env) -> np.ndarray:
+    """Payload (x, y, yaw) per env at the observation just returned, [K, 3] (BatchEnv's snapshot)."""
+    snap = env.snap
+    return np.concatenate([np.asarray(snap.pxy, np.float64), np.asarray(snap.pyaw, np.float64)[:, None]], axis=1)
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    return x
