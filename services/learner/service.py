@@ -199,7 +199,10 @@ class LearnerService(Service):
         n = self.cfg.batch_chunks
         if len(self.pending) < n:
             return False
-        bodies = [self.pending.popleft() for _ in range(n)]
+        # the freshest chunks (most on-policy); older ones wait and go stale
+        newest_first = sorted(self.pending, key=lambda b: b["version"], reverse=True)
+        bodies, rest = newest_first[:n], newest_first[n:]
+        self.pending = deque(sorted(rest, key=lambda b: b["version"]))
         try:
             batch = traj_batch(bodies)
         except ValueError as exc:
