@@ -30,12 +30,13 @@ _GI_MAX_ITER = 2
 
 
 @njit(cache=True)
-def _gi_drop(l, q, n, R, J, u, act, in_act):
+def _gi_drop(l, q, n, R, JT, u, act, in_act):
     """Remove active constraint number ``l`` and restore R to triangular form.
 
-    Invariant kept: ``J[:, :q] R[:q, j] = N[act[j]]`` with J orthogonal.
-    Deleting column l leaves R upper Hessenberg; Givens rotations on rows
-    (j, j+1) of R and the same rotations on columns (j, j+1) of J fix it.
+    Invariant kept: row i = act[j] satisfies Jᵀ N_i = [R[:q, j]; 0] with J
+    orthogonal (stored transposed, JT = Jᵀ, for contiguous access). Deleting
+    column l leaves R upper Hessenberg; Givens rotations on rows (j, j+1) of R
+    and of JT restore it.
     """
     in_act[act[l]] = False
     for j in range(l, q - 1):
@@ -56,29 +57,30 @@ def _gi_drop(l, q, n, R, J, u, act, in_act):
                 R[j, col] = cs * r1 + sn * r2
                 R[j + 1, col] = -sn * r1 + cs * r2
             for k in range(n):
-                j1 = J[k, j]
-                j2 = J[k, j + 1]
-                J[k, j] = cs * j1 + sn * j2
-                J[k, j + 1] = -sn * j1 + cs * j2
+                j1 = JT[j, k]
+                j2 = JT[j + 1, k]
+                JT[j, k] = cs * j1 + sn * j2
+                JT[j + 1, k] = -sn * j1 + cs * j2
         R[j + 1, j] = 0.0
     return q - 1
 
 
 @njit(cache=True)
-def _gi_solve(y0, N, b, norms, m, n, tol, dep_tol, max_iter,
-              y, J, R, u, act, in_act, dvec, z, r):
-    """Goldfarb–Idnani dual active set for min ½‖y − y0‖² s.t. N[:m, :n] y ≥ b[:m].
+def _gi_solve(y0, N, b, norms, mg, bvar, bsign, m, n, tol, dep_tol, max_iter,
+              y, JT, R, u, act, in_act, dvec, z, r):
+    """Goldfarb–Idnani dual active set for min ½‖y − y0‖² s.t. rows(y) ≥ b[:m].
 
+    Rows 0..mg−1 are dense (N[i, :n]); rows mg..m−1 are bounds bsign[i]·y[bvar[i]]
+    (the action box and slack signs), which cost O(1) to evaluate.
     Starts at the unconstrained minimizer y0 (dual feasible) and repeatedly
-    adds the most violated row (normalized by its norm); a row that cannot be
-    reached by any primal step while no active multiplier can shrink proves
-    the row set infeasible. Returns (code, iterations, q) with the active set
-    in ``act[:q]`` and its multipliers in ``u[:q]``.
+    adds the most violated row (normalized by its norm); a row that no primal
+    step can reach while no active multiplier can shrink proves the row set
+    infeasible. Returns (code, iterations, q): active set act[:q], multipliers u[:q].
     """
     for i in range(n):
         y[i] = y0[i]
         for j in range(n):
-            J[i, j] = 1.0 if i == j else 0.0
+            JT[i, j] = 1.0 if i == j else 0.0
     for i in range(m):
         in_act[i] = False
     q = 0
@@ -87,12 +89,17 @@ def _gi_solve(y0, N, b, norms, m, n, tol, dep_tol, max_iter,
         # Step 1: most violated row (violation measured in row-normalized units).
         p = -1
         worst = 0.0
+        # (Manually inlined row products: a helper call per row costs array
+        # refcounting that dominated the runtime.)
         for i in range(m):
             if in_act[i]:
                 continue
-            si = -b[i]
-            for k in range(n):
-                si += N[i, k] * y[k]
+            if i < mg:
+                si = -b[i]
+                for k in range(n):
+                    si += N[i, k] * y[k]
+            else:
+                si = bsign[i] * y[bvar[i]] - b[i]
             if si < -tol * max(norms[i], 1.0):
                 v = si / norms[i]
                 if v < worst:
@@ -106,20 +113,24 @@ def _gi_solve(y0, N, b, norms, m, n, tol, dep_tol, max_iter,
             it += 1
             if it > max_iter:
                 return _GI_MAX_ITER, it, q
-            for j in range(n):
-                acc = 0.0
-                for k in range(n):
-                    acc += J[k, j] * N[p, k]
-                dvec[j] = acc
+            if p >= mg:  # d = Jᵀ n_p
+                for j in range(n):
+                    dvec[j] = bsign[p] * JT[j, bvar[p]]
+            else:
+                for j in range(n):
+                    acc = 0.0
+                    for k in range(n):
+                        acc += JT[j, k] * N[p, k]
+                    dvec[j] = acc
             zn2 = 0.0
-            for j in range(q, n):
-                zn2 += dvec[j] * dvec[j]
             for k in range(n):
-                acc = 0.0
-                for j in range(q, n):
-                    acc += J[k, j] * dvec[j]
-                z[k] = acc
-            for j in range(q - 1, -1, -1):
+                z[k] = 0.0
+            for j in range(q, n):  # z = J₂ d₂: primal direction in the null space of the active rows
+                dj = dvec[j]
+                zn2 += dj * dj
+                for k in range(n):
+                    z[k] += JT[j, k] * dj
+            for j in range(q - 1, -1, -1):  # r = R⁻¹ d₁: dual direction
                 acc = dvec[j]
                 for l2 in range(j + 1, q):
                     acc -= R[j, l2] * r[l2]
@@ -133,14 +144,18 @@ def _gi_solve(y0, N, b, norms, m, n, tol, dep_tol, max_iter,
                     if ratio < t1:
                         t1 = ratio
                         l = j
-            # Full (primal) step length: reach row p along z (null space of active rows).
+            # Full (primal) step length: reach row p along z.
             t2 = np.inf
             if zn2 > (dep_tol * norms[p]) ** 2:
-                sp = -b[p]
-                zn = 0.0
-                for k in range(n):
-                    sp += N[p, k] * y[k]
-                    zn += z[k] * N[p, k]
+                if p < mg:
+                    sp = -b[p]
+                    zn = 0.0
+                    for k in range(n):
+                        sp += N[p, k] * y[k]
+                        zn += N[p, k] * z[k]
+                else:
+                    sp = bsign[p] * y[bvar[p]] - b[p]
+                    zn = bsign[p] * z[bvar[p]]
                 t2 = max(-sp / zn, 0.0)
             if t1 == np.inf and t2 == np.inf:
                 return _GI_INFEASIBLE, it, q
@@ -149,7 +164,7 @@ def _gi_solve(y0, N, b, norms, m, n, tol, dep_tol, max_iter,
                 for j in range(q):
                     u[j] -= t1 * r[j]
                 up += t1
-                q = _gi_drop(l, q, n, R, J, u, act, in_act)
+                q = _gi_drop(l, q, n, R, JT, u, act, in_act)
                 continue
             t = min(t1, t2)
             for k in range(n):
@@ -158,7 +173,7 @@ def _gi_solve(y0, N, b, norms, m, n, tol, dep_tol, max_iter,
                 u[j] -= t * r[j]
             up += t
             if t2 <= t1:
-                # Full step: add p. Rotate d = J^T n_p so that d[q+1:] = 0.
+                # Full step: add p. Rotate d = Jᵀ n_p so that d[q+1:] = 0.
                 for j in range(n - 1, q, -1):
                     if dvec[j] != 0.0:
                         h = math.hypot(dvec[j - 1], dvec[j])
@@ -167,10 +182,10 @@ def _gi_solve(y0, N, b, norms, m, n, tol, dep_tol, max_iter,
                         dvec[j - 1] = h
                         dvec[j] = 0.0
                         for k in range(n):
-                            j1 = J[k, j - 1]
-                            j2 = J[k, j]
-                            J[k, j - 1] = cs * j1 + sn * j2
-                            J[k, j] = -sn * j1 + cs * j2
+                            j1 = JT[j - 1, k]
+                            j2 = JT[j, k]
+                            JT[j - 1, k] = cs * j1 + sn * j2
+                            JT[j, k] = -sn * j1 + cs * j2
                 for k in range(q + 1):
                     R[k, q] = dvec[k]
                 act[q] = p
@@ -178,7 +193,7 @@ def _gi_solve(y0, N, b, norms, m, n, tol, dep_tol, max_iter,
                 in_act[p] = True
                 q += 1
                 break
-            q = _gi_drop(l, q, n, R, J, u, act, in_act)
+            q = _gi_drop(l, q, n, R, JT, u, act, in_act)
 
 
 @njit(cache=True)
@@ -195,12 +210,14 @@ def solve_batch_active_set(a, C, c, row_mask, fixed, lo, hi, tol, dep_tol, zero_
     B, M, d = C.shape
     nl = d + M
     ml = 2 * M + 2 * d
-    N = np.zeros((ml, nl))
+    N = np.zeros((M, nl))
     bvec = np.zeros(ml)
     norms = np.ones(ml)
+    bvar = np.zeros(ml, dtype=np.int64)
+    bsign = np.zeros(ml)
     y0 = np.zeros(nl)
     y = np.zeros(nl)
-    J = np.zeros((nl, nl))
+    JT = np.zeros((nl, nl))
     R = np.zeros((nl, nl))
     u = np.zeros(nl)
     act = np.zeros(nl, dtype=np.int64)
@@ -209,7 +226,6 @@ def solve_batch_active_set(a, C, c, row_mask, fixed, lo, hi, tol, dep_tol, zero_
     z = np.zeros(nl)
     r = np.zeros(nl)
     free = np.zeros(d, dtype=np.int64)
-    rows = np.zeros(M, dtype=np.int64)
     cp = np.zeros(M)
     inv_sqrt_rho = 1.0 / math.sqrt(rho)
     for bi in range(B):
@@ -233,83 +249,71 @@ def solve_batch_active_set(a, C, c, row_mask, fixed, lo, hi, tol, dep_tol, zero_
             nrm2 = 0.0
             for kk in range(nf):
                 v = C[bi, i, free[kk]]
+                N[mr, kk] = v
                 nrm2 += v * v
             nrm = math.sqrt(nrm2)
             if nrm <= zero_tol:
                 if ci > tol:
                     zero_violated = True  # a constant row that no free action can fix
                 continue
-            rows[mr] = i
             cp[mr] = ci
-            norms[mr] = nrm
-            for kk in range(nf):
-                N[mr, kk] = C[bi, i, free[kk]]
             bvec[mr] = ci
+            norms[mr] = nrm
             mr += 1
         if nf == 0:
-            status[bi] = STATUS_INFEASIBLE if (zero_violated or mr > 0) else STATUS_OPTIMAL
+            status[bi] = STATUS_INFEASIBLE if zero_violated else STATUS_OPTIMAL
             iters[bi] = 0
             continue
+        for kk in range(nf):
+            y0[kk] = a[bi, free[kk]]
         code = _GI_INFEASIBLE
         it = 0
         if not zero_violated:
             m = mr
             for kk in range(nf):  # box as ordinary rows: x_k ≥ lo_k and −x_k ≥ −hi_k
-                for j in range(nf):
-                    N[m, j] = 0.0
-                    N[m + 1, j] = 0.0
-                N[m, kk] = 1.0
-                N[m + 1, kk] = -1.0
+                bvar[m] = kk
+                bsign[m] = 1.0
                 bvec[m] = lo[bi, free[kk]]
-                bvec[m + 1] = -hi[bi, free[kk]]
                 norms[m] = 1.0
+                bvar[m + 1] = kk
+                bsign[m + 1] = -1.0
+                bvec[m + 1] = -hi[bi, free[kk]]
                 norms[m + 1] = 1.0
                 m += 2
-            for kk in range(nf):
-                y0[kk] = a[bi, free[kk]]
-            code, it, q = _gi_solve(y0, N, bvec, norms, m, nf, tol, dep_tol, max_iter,
-                                    y, J, R, u, act, in_act, dvec, z, r)
+            code, it, q = _gi_solve(y0, N, bvec, norms, mr, bvar, bsign, m, nf, tol, dep_tol,
+                                    max_iter, y, JT, R, u, act, in_act, dvec, z, r)
         if code == _GI_INFEASIBLE:
-            # Lifted slack QP over y = (x_free, σ); rows [C_i, e_i/√ρ] y ≥ c_i, σ ≥ 0, box.
+            # Lifted slack QP over y = (x_free, σ): rows [C_i, e_i/√ρ] y ≥ c_i, σ ≥ 0, box.
             n2 = nf + mr
-            m = 0
             for ii in range(mr):
-                for j in range(n2):
-                    N[m, j] = 0.0
-                i = rows[ii]
                 nrm2 = 0.0
                 for kk in range(nf):
-                    v = C[bi, i, free[kk]]
-                    N[m, kk] = v
-                    nrm2 += v * v
-                N[m, nf + ii] = inv_sqrt_rho
-                bvec[m] = cp[ii]
-                norms[m] = math.sqrt(nrm2 + inv_sqrt_rho * inv_sqrt_rho)
-                m += 1
-            for ii in range(mr):
-                for j in range(n2):
-                    N[m, j] = 0.0
-                N[m, nf + ii] = 1.0
+                    nrm2 += N[ii, kk] * N[ii, kk]
+                for j in range(nf, n2):
+                    N[ii, j] = 0.0
+                N[ii, nf + ii] = inv_sqrt_rho
+                bvec[ii] = cp[ii]
+                norms[ii] = math.sqrt(nrm2 + inv_sqrt_rho * inv_sqrt_rho)
+                y0[nf + ii] = 0.0
+            m = mr
+            for ii in range(mr):  # σ_i ≥ 0
+                bvar[m] = nf + ii
+                bsign[m] = 1.0
                 bvec[m] = 0.0
                 norms[m] = 1.0
                 m += 1
             for kk in range(nf):
-                for j in range(n2):
-                    N[m, j] = 0.0
-                    N[m + 1, j] = 0.0
-                N[m, kk] = 1.0
-                N[m + 1, kk] = -1.0
+                bvar[m] = kk
+                bsign[m] = 1.0
                 bvec[m] = lo[bi, free[kk]]
-                bvec[m + 1] = -hi[bi, free[kk]]
                 norms[m] = 1.0
+                bvar[m + 1] = kk
+                bsign[m + 1] = -1.0
+                bvec[m + 1] = -hi[bi, free[kk]]
                 norms[m + 1] = 1.0
                 m += 2
-            for kk in range(nf):
-                y0[kk] = a[bi, free[kk]]
-            for ii in range(mr):
-                y0[nf + ii] = 0.0
-            code2, it2, q = _gi_solve(y0, N, bvec, norms, m, n2, tol, dep_tol, max_iter,
-                                      y, J, R, u, act, in_act, dvec, z, r)
+            code2, it2, q = _gi_solve(y0, N, bvec, norms, mr, bvar, bsign, m, n2, tol, dep_tol,
+                                      max_iter, y, JT, R, u, act, in_act, dvec, z, r)
             it += it2
             status[bi] = STATUS_INFEASIBLE if code2 == _GI_OK else STATUS_MAX_ITER
         elif code == _GI_OK:

@@ -7,6 +7,12 @@ substituted exactly as in the active-set backend: their columns are zeroed in
 the rows (c ← c − C_F a_F) and their box row is pinned to l = u = a_k.
 Tight tolerances plus solution polishing make it agree with the exact
 active-set answer to ~1e-7.
+
+Infeasible row sets: OSQP's primal-infeasibility certificate (or a constant
+row violated by the fixed block) triggers the fail-closed slack QP of
+common/qp.py. OSQP itself does not converge on that QP (ρ = 1e6 makes the
+multipliers ~1e5; it hits max_iter far from the answer), so those problems are
+handed to the active-set kernel, which solves the same lifted slack QP exactly.
 """
 from __future__ import annotations
 
@@ -14,10 +20,11 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
-from common.qp_kernels import STATUS_INFEASIBLE, STATUS_MAX_ITER, STATUS_OPTIMAL
+from common.qp_kernels import STATUS_MAX_ITER, STATUS_OPTIMAL, solve_batch_active_set
 
-_SOLVED = osqp.constant("OSQP_SOLVED")
-_INFEASIBLE = (osqp.constant("OSQP_PRIMAL_INFEASIBLE"), osqp.constant("OSQP_PRIMAL_INFEASIBLE_INACCURATE"))
+_SOLVED = int(osqp.SolverStatus.OSQP_SOLVED)
+_INFEASIBLE = (int(osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE),
+               int(osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE_INACCURATE))
 
 
 def _settings(cfg) -> dict:
@@ -34,21 +41,6 @@ def _settings(cfg) -> dict:
     )
 
 
-def _slack_qp(a, Cf, cf, lo, hi, cfg) -> np.ndarray:
-    """Min ½‖x − a‖² + ρ/2‖s‖² s.t. C x + s ≥ c, s ≥ 0, lo ≤ x ≤ hi, solved by OSQP."""
-    n, m = a.size, cf.size
-    P = sp.block_diag([sp.eye(n), cfg.slack_rho * sp.eye(m)], format="csc")
-    A = sp.bmat([[sp.csc_matrix(Cf), sp.eye(m)],
-                 [None, sp.eye(m)],
-                 [sp.eye(n), None]], format="csc")
-    l = np.concatenate([cf, np.zeros(m), lo])
-    u = np.concatenate([np.full(2 * m, np.inf), hi])
-    prob = osqp.OSQP()
-    prob.setup(P, np.concatenate([-a, np.zeros(m)]), A, l, u, **_settings(cfg))
-    res = prob.solve()
-    return res.x[:n], res.info.status_val, res.info.iter
-
-
 def solve_batch_osqp(a, C, c, row_mask, fixed, lo, hi, cfg):
     """Loop of per-problem OSQP solves over an updated problem (see module doc)."""
     B, M, d = C.shape
@@ -62,6 +54,7 @@ def solve_batch_osqp(a, C, c, row_mask, fixed, lo, hi, cfg):
     ri, ci = ri[order], ci[order]
     on_rows = ri < M
     prob = None
+    infeasible = []
     for b in range(B):
         free = ~fixed[b]
         cb = c[b] - C[b][:, ~free] @ a[b, ~free]
@@ -76,7 +69,7 @@ def solve_batch_osqp(a, C, c, row_mask, fixed, lo, hi, cfg):
             prob.setup(sp.eye(d, format="csc"), -a[b], A, l, u, **_settings(cfg))
         else:
             prob.update(q=-a[b], l=l, u=u, Ax=Ax)
-        res = prob.solve()
+        res = prob.solve(raise_error=False)
         iters[b] = res.info.iter
         row_norm = np.linalg.norm(Cb, axis=1)
         constant_violated = np.any(row_mask[b] & (row_norm <= cfg.zero_tol) & (cb > cfg.tol))
@@ -84,17 +77,19 @@ def solve_batch_osqp(a, C, c, row_mask, fixed, lo, hi, cfg):
             xb = res.x
             status[b] = STATUS_OPTIMAL
         elif res.info.status_val in _INFEASIBLE or constant_violated:
-            # A masked row with no free entries and c > 0 can never be satisfied either.
-            m = row_mask[b] & (row_norm > cfg.zero_tol)
-            xf, st, it = _slack_qp(a[b, free], Cb[m][:, free], cb[m], lo[b, free], hi[b, free], cfg)
-            xb = a[b].copy()
-            xb[free] = xf
-            iters[b] += it
-            status[b] = STATUS_INFEASIBLE if st == _SOLVED else STATUS_MAX_ITER
+            infeasible.append(b)
+            continue
         else:
             xb = res.x
             status[b] = STATUS_MAX_ITER
         # Fixed variables keep a_prop exactly; the box is always respected.
         x_out[b, free] = np.clip(xb[free], lo[b, free], hi[b, free])
+    if infeasible:
+        idx = np.array(infeasible)
+        xs, st, it = x_out[idx], status[idx], np.zeros(len(idx), dtype=np.int64)
+        solve_batch_active_set(a[idx], C[idx], c[idx], row_mask[idx], fixed[idx], lo[idx], hi[idx],
+                               cfg.tol, cfg.dep_tol, cfg.zero_tol, cfg.max_iter, cfg.slack_rho,
+                               xs, st, it)
+        x_out[idx], status[idx], iters[idx] = xs, st, iters[idx] + it
     return x_out, status, iters
 
