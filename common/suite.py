@@ -62,10 +62,13 @@ def train_command(cfg: SuiteConfig, spec: RunSpec, run_dir: Path) -> list[str]:
 
 def collect_result(spec: RunSpec, run_dir: Path, budget: dict) -> dict:
     """Build the report's result record from a finished run directory."""
+    from common.deploy_eval import eval_record
+
     metrics_path = run_dir / "metrics.jsonl"
-    eval_path = run_dir / "eval.json"
-    if not eval_path.exists():
-        raise FileNotFoundError(f"{run_dir}: no eval.json (training did not finish)")
+    summary_path = run_dir / "summary.json"
+    summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
+    if "eval" not in summary:
+        raise FileNotFoundError(f"{run_dir}: summary.json has no final evaluation (training did not finish)")
     curve = []
     if metrics_path.exists():
         rows = [json.loads(line) for line in metrics_path.read_text().splitlines() if line.strip()]
@@ -76,7 +79,7 @@ def collect_result(spec: RunSpec, run_dir: Path, budget: dict) -> dict:
             curve.append(point)
     return {
         "method": spec.method, "scenario": spec.scenario, "seed": spec.seed,
-        "eval": json.loads(eval_path.read_text()), "train_curve": curve, "budget": budget,
+        "eval": eval_record(summary["eval"]), "train_curve": curve, "budget": budget,
         "run_dir": str(run_dir),
     }
 

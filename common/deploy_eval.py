@@ -1,0 +1,80 @@
+"""`sage eval`: deployment evaluation with what deployment keeps.
+
+Deployment keeps only the hard trees' deterministic actions and the exact
+joint CBF-QP (Sec. III-D: SAIL, exploration, the critic and TALO are
+training-only), so this loads the tree parameters of a run's newest
+checkpoint and runs ``common.evaluation.evaluate_policy`` on seeded episodes
+disjoint from training. Output keys follow the report's ``EVAL_KEYS``.
+"""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+
+def eval_record(e: dict) -> dict:
+    """Map ``evaluate_policy`` output onto the report's result keys (+ stds)."""
+    out = {k: e.get(k) for k in (
+        "success_rate", "return_mean", "col_per_1k", "drop_rate", "tilt", "heading_error",
+        "height_error", "completion_time", "min_clearance", "progress_per_step")}
+    for k in list(out):
+        if f"{k}_std" in e:
+            out[f"{k}_std"] = e[f"{k}_std"]
+    out["proposal_violation"] = e.get("proposal_violation_rate")
+    out["correction"] = e.get("correction_mean")
+    out["intervention_rate"] = e.get("intervention_rate")
+    out["infeasible_steps"] = e.get("infeasible_steps")
+    out["episodes"] = e.get("episodes_finished")
+    out["shielded"] = e.get("shielded")
+    out["seed"] = e.get("seed")
+    return out
+
+
+def load_run(path: str | Path):
+    """(TrainConfig, flat tree params, checkpoint version) from a run dir or checkpoint file."""
+    from common.checkpoint import load_checkpoint, load_latest
+    from services.cli import _params_from_checkpoint
+    from services.config import TrainConfig
+
+    p = Path(path)
+    if p.is_dir():
+        cfg = TrainConfig.load(p / "config.json")
+        ck = load_latest(p / "checkpoints")
+        if ck is None:
+            raise FileNotFoundError(f"{p}: no loadable checkpoint under checkpoints/")
+    else:
+        ck = load_checkpoint(p)
+        cfg = TrainConfig.from_json(ck["config"]) if hasattr(TrainConfig, "from_json") else \
+            TrainConfig.load(p.parent.parent / "config.json")
+    return cfg, _params_from_checkpoint(cfg, ck), int(ck["version"])
+
+
+def run_eval_command(args) -> int:
+    from common.evaluation import evaluate_policy
+
+    cfg, params, version = load_run(args.checkpoint)
+    if args.scenario:
+        cfg.scenario = args.scenario
+    shielded = not args.unshielded
+    env_cfg = cfg.env_config()
+    raw = evaluate_policy(params, env_cfg, args.episodes, seed=args.seed, shielded=shielded)
+    rec = eval_record(raw)
+    rec.update(method=cfg.method, scenario=cfg.scenario, version=version)
+    if args.record:
+        from common.audit.recording import record_episodes, save
+
+        recording = record_episodes(params, env_cfg, args.episodes, seed=args.seed, shielded=shielded)
+        rec["recording"] = str(save(recording, args.record))
+    if args.json:
+        print(json.dumps(rec, indent=2, default=float))
+    else:
+        def f(key, scale=1.0):
+            v = rec.get(key)
+            return "n/a" if v is None else f"{v * scale:.2f}"
+        print(f"{cfg.method} on {cfg.scenario} (version {version}, {rec['episodes']} episodes, "
+              f"{'exact QP' if shielded else 'unshielded'}): SR {f('success_rate', 100)}%  "
+              f"return {f('return_mean')}  Col/1k {f('col_per_1k')}  DR {f('drop_rate', 100)}%  "
+              f"proposal viol. {f('proposal_violation', 100)}%  correction {f('correction')}", file=sys.stderr)
+        print(json.dumps(rec, default=float))
+    return 0
