@@ -13,20 +13,26 @@ torch differentiated through). On the current positive-residual rows A
     H = I + kappa C_A^T C_A,    grad = (x - a_ST) - kappa C_A^T r_A,
     x <- x - t H^{-1} grad.
 
-Damping (`damping="armijo"`): t is the first of 1, 1/2, ..., 2^-(n_backtrack-1)
-that satisfies the Armijo condition f(x + t dx) <= f(x) + c1 t grad.dx, else 0.
-Every accepted step therefore lowers f (monotone), and the objective is convex
-and C^1, so plain Newton's possible cycling between active sets is excluded.
-All candidate step sizes are evaluated at once (vectorized over the batch);
-the chosen t is a piecewise-constant selection and is treated as a constant by
-autograd. Inside a region with a fixed active set the full Newton step is exact,
-so once it is accepted the unrolled map's Jacobian w.r.t. a_ST is
-(I + kappa C_J^T C_J)^{-1} (Eq. sail_jacobian). With no violated row the
-gradient is exactly 0 and the map is exactly the identity.
+Damping (`damping="exact"`): if the full step x + dx keeps the active set, it is
+the exact minimizer of f (the gradient of the current quadratic piece vanishes
+there) and t = 1. Otherwise t is the exact minimizer of the 1-D convex piecewise
+quadratic phi(t) = f(x + t dx), found in closed form from the breakpoints
+t_j = r_j / (C_j dx) (vectorized, no Python loop over samples). So f never
+increases (monotone), and the step stops just past the first row that would
+become violated instead of jumping over it: plain full steps (`damping="none"`)
+can oscillate between active sets, and backtracking (t = 1/2^k) jams when the
+iterate sits on the kink of a nearly active row. t is treated as a constant by
+autograd. Inside a region with a fixed active set the accepted full step is
+exact, so the unrolled map's Jacobian w.r.t. a_ST is (I + kappa C_J^T C_J)^{-1}
+(Eq. sail_jacobian). With no violated row the gradient is exactly 0 and the map
+is exactly the identity. Steps: each step adds or drops rows of the active set;
+up to ~10 rows this converges in a few steps, `n_newton` bounds the count (the
+numpy twin stops early per sample once a full step was exact).
 
-Fixed (human) blocks: pass `fixed_mask`/`fixed_action`; the fixed columns are
-moved to the right-hand side (`absorb_fixed`), so SAIL only moves the robot
-blocks and leaves the human block exactly at its measured value.
+Fixed (human) blocks: pass `fixed_mask`/`fixed_action`. The objective is the same
+(rows normalized as given) with the human block held at its measured value: after
+normalization the fixed columns are moved to the right-hand side (`absorb_fixed`),
+so SAIL only moves the robot blocks and the human block stays exactly put.
 
 torch is imported inside the torch functions only: actor processes use the
 numpy twin and never load torch.
@@ -44,15 +50,13 @@ if TYPE_CHECKING:  # pragma: no cover
 
 @dataclass(frozen=True)
 class SailConfig:
-    n_newton: int = 8          # unrolled damped Newton steps
-    damping: str = "armijo"    # "armijo" (monotone backtracking) or "none" (full steps)
-    n_backtrack: int = 12      # candidate step sizes 1, 1/2, ..., 2^-(n_backtrack-1)
-    armijo_c: float = 1e-4     # sufficient-decrease constant
+    n_newton: int = 20         # unrolled damped Newton steps (numpy twin stops early once exact)
+    damping: str = "exact"     # "exact" (full step if exact, else exact line search) or "none" (full steps)
     row_tol: float = 1e-9      # rows with ||C_j|| <= row_tol count as zero rows
 
 
 _DEFAULT = SailConfig()
-_DAMPINGS = ("armijo", "none")
+_DAMPINGS = ("exact", "none")
 
 
 # ----------------------------------------------------------------------------- shared helpers
@@ -119,25 +123,28 @@ def _check_options(n_newton, damping):
 # ----------------------------------------------------------------------------- numpy twin
 
 
-def _objective_np(x, a, Cn, cn, kappa):
-    """f(x) = 1/2||x-a||^2 + kappa/2 sum [cn - Cn x]_+^2 per sample (masked rows of Cn, cn are 0)."""
-    r = np.maximum(cn - (Cn @ x[..., None])[..., 0], 0.0)
-    return 0.5 * np.sum((x - a) ** 2, -1) + 0.5 * kappa * np.sum(r * r, -1)
+def _line_search_np(x, dx, a, Cn, cn, kappa):
+    """argmin_{t >= 0} f(x + t dx): the root of the increasing piecewise-linear phi'(t)."""
+    r = cn - (Cn @ x[..., None])[..., 0]
+    s = (Cn @ dx[..., None])[..., 0]
+    g0, q = np.sum((x - a) * dx, -1), np.sum(dx * dx, -1)
 
+    def dphi(t):  # [B,T] -> phi'(t) [B,T]
+        h = np.maximum(r[:, None, :] - t[..., None] * s[:, None, :], 0.0)
+        return g0[:, None] + t * q[:, None] - kappa[:, None] * np.sum(h * s[:, None, :], -1)
 
-def _armijo_np(x, dx, grad, a, Cn, cn, kappa, config):
-    """Backtracking step sizes t in {1, 1/2, ...} (first that satisfies Armijo, else 0), per sample."""
-    f0 = _objective_np(x, a, Cn, cn, kappa)
-    slope = np.sum(grad * dx, -1)
-    t = np.ones(len(x))
-    pending = np.ones(len(x), dtype=bool)
-    for _ in range(config.n_backtrack):
-        f = _objective_np(x + t[:, None] * dx, a, Cn, cn, kappa)
-        pending &= ~(f <= f0 + config.armijo_c * t * slope)
-        if not pending.any():
-            return t
-        t = np.where(pending, 0.5 * t, t)
-    return np.where(pending, 0.0, t)  # no decrease found (already at the minimizer up to rounding)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tb = r / s
+    valid = (s != 0) & (tb > 0)  # rows that switch on/off at a positive step
+    tb = np.where(valid, tb, 0.0)
+    neg = valid & (dphi(tb) < 0)
+    lo = np.max(np.where(neg, tb, 0.0), -1)  # last breakpoint still descending
+    hi = np.min(np.where(valid & ~neg, tb, np.inf), -1)
+    mid = np.where(np.isfinite(hi), 0.5 * (lo + hi), lo + 1.0)
+    on = (r - mid[:, None] * s) > 0  # rows penalized on (lo, hi), where phi' is linear
+    slope = q + kappa * np.sum(np.where(on, s * s, 0.0), -1)
+    t = lo - dphi(lo[:, None])[:, 0] / np.where(slope > 0, slope, 1.0)
+    return np.where(slope > 0, np.clip(t, lo, hi), 1.0)
 
 
 def sail_project_np(
@@ -168,30 +175,65 @@ def sail_project_np(
     kappa = np.broadcast_to(np.asarray(kappa, dtype=np.float64), (a.shape[0],))
     if not np.all(np.isfinite(kappa)) or np.any(kappa < 0):
         raise ValueError(f"sail: kappa must be finite and >= 0, got {kappa}")
-    if fixed_mask is not None:
+    Cn, cn, keep = normalize_rows(C, c, mask, config.row_tol)
+    if fixed_mask is not None:  # rows are normalized as given, then the human block is held fixed
         fixed = np.broadcast_to(np.asarray(fixed_mask, dtype=bool), a.shape)
         human = np.broadcast_to(np.asarray(fixed_action, dtype=np.float64), a.shape)
         a = np.where(fixed, human, a)
-        C, c = absorb_fixed(C, c, fixed, human)
-    Cn, cn, keep = normalize_rows(C, c, mask, config.row_tol)
+        Cn, cn = absorb_fixed(Cn, cn, fixed, human)
 
     eye = np.eye(a.shape[1])
     x = a.copy()
+    todo = np.arange(len(a))  # samples not yet at their exact minimizer
     for _ in range(int(n_newton)):
-        r = cn - (Cn @ x[..., None])[..., 0]
-        active = (r > 0) & keep
-        Ca = Cn * active[..., None]
-        grad = (x - a) - kappa[:, None] * (np.where(active, r, 0.0)[:, None, :] @ Cn)[:, 0, :]
-        H = eye + kappa[:, None, None] * (Ca.transpose(0, 2, 1) @ Ca)
+        if todo.size == 0:
+            break
+        xs, at, Ct, ct, kt, kap = x[todo], a[todo], Cn[todo], cn[todo], keep[todo], kappa[todo]
+        resid = ct - (Ct @ xs[..., None])[..., 0]
+        active = (resid > 0) & kt
+        r = np.where(active, resid, 0.0)
+        Ca = Ct * active[..., None]
+        grad = (xs - at) - kap[:, None] * (r[:, None, :] @ Ct)[:, 0, :]
+        H = eye + kap[:, None, None] * (Ca.transpose(0, 2, 1) @ Ca)
         dx = -np.linalg.solve(H, grad[..., None])[..., 0]
-        if damping == "none":
-            x = x + dx
-            continue
-        x = x + _armijo_np(x, dx, grad, a, Cn, cn, kappa, config)[:, None] * dx
+        # a full step that keeps the active set lands on the minimizer of this quadratic
+        # piece, where grad f = 0: exact, so the sample is done
+        exact = np.all(((ct - (Ct @ (xs + dx)[..., None])[..., 0] > 0) & kt) == active, axis=1)
+        t = np.ones(len(todo))
+        if damping == "exact" and not exact.all():
+            t = np.where(exact, 1.0, _line_search_np(xs, dx, at, Ct, ct, kap))
+        x[todo] = xs + t[:, None] * dx
+        todo = todo[~exact]
     return x
 
 
 # ----------------------------------------------------------------------------- torch (differentiable)
+
+
+def _line_search_torch(x, dx, a, Cn, cn, kappa):
+    """Torch twin of `_line_search_np` (no autograd)."""
+    import torch
+
+    r = cn - torch.einsum("bmd,bd->bm", Cn, x)
+    s = torch.einsum("bmd,bd->bm", Cn, dx)
+    g0, q = ((x - a) * dx).sum(-1), (dx * dx).sum(-1)
+
+    def dphi(t):
+        h = torch.relu(r[:, None, :] - t[..., None] * s[:, None, :])
+        return g0[:, None] + t * q[:, None] - kappa[:, None] * (h * s[:, None, :]).sum(-1)
+
+    zero = torch.zeros((), dtype=x.dtype, device=x.device)
+    tb = r / torch.where(s != 0, s, torch.ones_like(s))
+    valid = (s != 0) & (tb > 0)
+    tb = torch.where(valid, tb, zero)
+    neg = valid & (dphi(tb) < 0)
+    lo = torch.where(neg, tb, zero).amax(-1)
+    hi = torch.where(valid & ~neg, tb, torch.full_like(tb, float("inf"))).amin(-1)
+    mid = torch.where(torch.isfinite(hi), 0.5 * (lo + hi), lo + 1.0)
+    on = (r - mid[:, None] * s) > 0
+    slope = q + kappa * torch.where(on, s * s, zero).sum(-1)
+    t = lo - dphi(lo[:, None])[:, 0] / torch.where(slope > 0, slope, torch.ones_like(slope))
+    return torch.where(slope > 0, torch.minimum(torch.maximum(t, lo), hi), torch.ones_like(t))
 
 
 def sail_project(
@@ -227,16 +269,12 @@ def sail_project(
     if not bool(torch.isfinite(kappa).all()) or bool((kappa < 0).any()):
         raise ValueError(f"sail: kappa must be finite and >= 0, got {kappa}")
     a = a_st
-    if fixed_mask is not None:
+    Cn, cn, keep = normalize_rows(C, c, mask, config.row_tol)
+    if fixed_mask is not None:  # rows are normalized as given, then the human block is held fixed
         fixed = torch.as_tensor(fixed_mask, dtype=torch.bool, device=a.device).expand(B, d)
         human = torch.as_tensor(fixed_action, dtype=dtype, device=a.device).expand(B, d)
         a = torch.where(fixed, human, a)
-        C, c = absorb_fixed(C, c, fixed, human)
-    Cn, cn, keep = normalize_rows(C, c, mask, config.row_tol)
-
-    def objective(x):
-        r = torch.relu(cn - torch.einsum("bmd,bd->bm", Cn, x))
-        return 0.5 * ((x - a) ** 2).sum(-1) + 0.5 * kappa * (r * r).sum(-1)
+        Cn, cn = absorb_fixed(Cn, cn, fixed, human)
 
     eye = torch.eye(d, dtype=dtype, device=a.device)
     x = a
@@ -248,18 +286,10 @@ def sail_project(
         grad = (x - a) - kappa[:, None] * torch.einsum("bm,bmd->bd", r * act_f, Cn)
         H = eye + kappa[:, None, None] * torch.einsum("bmd,bme->bde", Ca, Ca)
         dx = -torch.linalg.solve(H, grad[..., None])[..., 0]
-        if damping == "none":
-            x = x + dx
-            continue
-        with torch.no_grad():  # Armijo backtracking; the step size is a constant for autograd
-            f0, slope = objective(x), (grad * dx).sum(-1)
+        with torch.no_grad():  # step size: a constant for autograd
+            exact = (((cn - torch.einsum("bmd,bd->bm", Cn, x + dx) > 0) & keep) == active).all(1)
             t = torch.ones(B, dtype=dtype, device=a.device)
-            pending = torch.ones(B, dtype=torch.bool, device=a.device)
-            for _ in range(config.n_backtrack):
-                pending &= ~(objective(x + t[:, None] * dx) <= f0 + config.armijo_c * t * slope)
-                if not bool(pending.any()):
-                    break
-                t = torch.where(pending, 0.5 * t, t)
-            t = torch.where(pending, torch.zeros_like(t), t)
+            if damping == "exact" and not bool(exact.all()):
+                t = torch.where(exact, t, _line_search_torch(x, dx, a, Cn, cn, kappa))
         x = x + t[:, None] * dx
     return x
