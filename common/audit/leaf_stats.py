@@ -118,7 +118,13 @@ def leaf_audit(leaves: np.ndarray, progress: np.ndarray, cfg: AuditConfig = Audi
     rng = np.random.default_rng(cfg.seed)
     per_carrier = [association(leaves[:, i], classes, cfg.shuffles, rng) for i in range(leaves.shape[1])]
     keys = ("purity", "nmi", "z_purity", "z_nmi")
-    individual = {k: float(np.mean([p[k] for p in per_carrier])) for k in keys}
+    # a carrier that never switches leaf has a degenerate null (std 0, z undefined = NaN);
+    # z means are over the carriers where z is defined, and that count is reported
+    individual = {k: float(np.mean([p[k] for p in per_carrier])) for k in ("purity", "nmi")}
+    for k in ("z_purity", "z_nmi"):
+        vals = [p[k] for p in per_carrier if np.isfinite(p[k])]
+        individual[k] = float(np.mean(vals)) if vals else float("nan")
+        individual[k + "_carriers"] = len(vals)
     joint = association(leaves, classes, cfg.shuffles, rng)
     return {"config": {"progress_bins": cfg.progress_bins, "shuffles": cfg.shuffles, "seed": cfg.seed,
                        "nmi_normalization": "arithmetic mean of entropies, natural log",
@@ -130,13 +136,15 @@ def leaf_audit(leaves: np.ndarray, progress: np.ndarray, cfg: AuditConfig = Audi
 def audit_markdown(result: dict) -> str:
     ind, joint = result["individual_mean"], result["joint"]
     cfg = result["config"]
+    n = len(result["individual_per_carrier"])
+    zn = "" if ind["z_nmi_carriers"] == n else f" ({ind['z_nmi_carriers']}/{n} carriers)"
     lines = [
         f"Leaf association with route progress ({cfg['progress_bins']} bins, {result['n_steps']} steps, "
         f"R = {cfg['shuffles']} shuffles; NMI: {cfg['nmi_normalization']}).",
         "",
         "| Representation | Purity ↑ | Shuffle z (NMI) ↑ | NMI ↑ | Shuffle z (purity) | distinct labels |",
         "|---|---|---|---|---|---|",
-        f"| Individual leaf (mean over carriers) | {ind['purity']:.3f} | {ind['z_nmi']:.1f} | {ind['nmi']:.2f} "
+        f"| Individual leaf (mean over carriers) | {ind['purity']:.3f} | {ind['z_nmi']:.1f}{zn} | {ind['nmi']:.2f} "
         f"| {ind['z_purity']:.1f} | {', '.join(str(p['n_clusters']) for p in result['individual_per_carrier'])} |",
         f"| Joint tuple (ℓ1, ℓ2, ℓ3) | {joint['purity']:.3f} | {joint['z_nmi']:.1f} | {joint['nmi']:.2f} "
         f"| {joint['z_purity']:.1f} | {joint['n_clusters']} |",

@@ -130,6 +130,23 @@ def _find_flat_params(obj, depth: int = 0):
     return None
 
 
+def _params_from_policy_state(ckpt, path: Path) -> dict:
+    """Learner checkpoints hold the TeamPolicy state dict (``ckpt["method"]["policy"]``, keys
+    ``trees.{i}.W`` ...): rebuild the TeamPolicy and use its own ``export_params``."""
+    from common.tree import TeamPolicy
+
+    state = ckpt.get("method", {}).get("policy") if isinstance(ckpt, dict) else None
+    if not isinstance(state, dict) or "trees.0.W" not in state:
+        raise BadPolicyParams(f"{path}: checkpoint holds neither flat policy params ('carrier_0/W') "
+                              "nor a TeamPolicy state ('method'/'policy'/'trees.0.W')")
+    n_agents = 1 + max(int(k.split(".")[1]) for k in state if k.startswith("trees."))
+    W, K = state["trees.0.W"], state["trees.0.K"]
+    depth = int(round(np.log2(W.shape[0] + 1)))
+    policy = TeamPolicy(n_agents, int(W.shape[1]), act_dim=int(K.shape[1]), depth=depth)
+    policy.load_state_dict(state)
+    return policy.export_params()
+
+
 def _to_numpy(value):
     if hasattr(value, "detach"):  # torch tensor, only present when a checkpoint was loaded
         return value.detach().cpu().numpy()
@@ -137,7 +154,8 @@ def _to_numpy(value):
 
 
 def load_params_file(path: str | Path) -> dict[str, np.ndarray]:
-    """Flat policy params from a checkpoint (torch.save dict), an .npz or a .json file."""
+    """Flat policy params from a checkpoint (torch.save dict), an .npz (flat params or a
+    decision-trace recording) or a .json file (flat params or a bundle's trees.json)."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"no such policy file: {path}")
@@ -145,6 +163,9 @@ def load_params_file(path: str | Path) -> dict[str, np.ndarray]:
     if suffix == ".npz":
         with np.load(path, allow_pickle=False) as data:
             raw = {k: data[k] for k in data.files}
+        prefix = "params::"  # a decision-trace recording embeds the params it ran (recording.py)
+        if any(k.startswith(prefix) for k in raw):
+            raw = {k[len(prefix):]: v for k, v in raw.items() if k.startswith(prefix)}
     elif suffix == ".json":
         with open(path) as f:
             raw = json.load(f)
@@ -156,7 +177,7 @@ def load_params_file(path: str | Path) -> dict[str, np.ndarray]:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
         raw = _find_flat_params(ckpt)
         if raw is None:
-            raise BadPolicyParams(f"{path}: checkpoint holds no flat policy params ('carrier_0/W' key)")
+            raw = _params_from_policy_state(ckpt, path)
     params = {k: _to_numpy(v) for k, v in raw.items()}
     split_carriers(params)  # validate early, with a clear message
     return params

@@ -23,8 +23,9 @@ def _num(x: float, digits: int = 2) -> str:
     return "0." + "0" * digits if s.startswith("-") and float(s) == 0 else s
 
 
-def format_linear(weights: np.ndarray, names: list[str], top: int) -> str:
-    """``0.82·a − 0.41·b + (7 more, |w|≤0.1)``: the ``top`` largest-|w| terms, the rest folded."""
+def format_linear(weights: np.ndarray, names: list[str], top: int, continued: bool = False) -> str:
+    """``0.82·a − 0.41·b + (7 more, |w|≤0.1)``: the ``top`` largest-|w| terms, the rest folded.
+    ``continued``: the sum follows another term, so the first term gets a "+ "/"− " too."""
     weights = np.asarray(weights, dtype=np.float64)
     order = np.argsort(-np.abs(weights), kind="stable")
     # terms that would print as 0.00 are folded into the remainder too
@@ -34,7 +35,7 @@ def format_linear(weights: np.ndarray, names: list[str], top: int) -> str:
     for n, j in enumerate(shown):
         w = weights[j]
         mag = f"{_num(abs(w))}·{names[j]}"
-        parts.append(("−" if w < 0 else "") + mag if n == 0 else ("− " if w < 0 else "+ ") + mag)
+        parts.append(("−" if w < 0 else "") + mag if n == 0 and not continued else ("− " if w < 0 else "+ ") + mag)
     if len(rest):
         parts.append(f"+ ({len(rest)} more, |w|≤{_num(float(np.max(np.abs(weights[rest]))))})")
     return " ".join(parts)
@@ -74,7 +75,7 @@ def describe_tree(tree: CarrierTree, names: list[str], cfg: AuditConfig = AuditC
     for leaf in range(tree.n_leaves):
         gains = {
             ACTION_NAMES[a] if a < len(ACTION_NAMES) else f"a{a}":
-                f"tanh({_num(tree.beta[leaf, a])} + {format_linear(tree.K[leaf, a], names, cfg.top_terms)})"
+                f"tanh({_num(tree.beta[leaf, a])} {format_linear(tree.K[leaf, a], names, cfg.top_terms, continued=True)})"
             for a in range(tree.act_dim)
         }
         entry = {
@@ -169,7 +170,7 @@ def tree_png(desc: dict, path: str, title: str = "") -> None:
     n_int = len(desc["nodes"])
     pos = node_positions(depth)
     n_leaves = 2 ** depth
-    fig, ax = plt.subplots(figsize=(4.2 * (depth + 1), max(4.0, 0.62 * n_leaves + 1)))
+    fig, ax = plt.subplots(figsize=(3.8 * (depth + 1), max(4.0, 0.62 * n_leaves + 1)))
     names = desc["feature_names"]
     max_visits = max((lf.get("visits", 0) for lf in desc["leaves"]), default=0)
     for k in range(n_int):
@@ -180,7 +181,7 @@ def tree_png(desc: dict, path: str, title: str = "") -> None:
                     ha="center", va="center", bbox=dict(fc="white", ec="none", pad=0.5), zorder=2)
     for nd in desc["nodes"]:
         x, y = pos[nd["id"]]
-        ax.text(x, y, f"N{nd['id']}: {short_predicate(nd['w'], nd['b'], names)}", fontsize=7.5,
+        ax.text(x, y, f"N{nd['id']}: {short_predicate(nd['w'], nd['b'], names)}", fontsize=8.5,
                 ha="center", va="center", zorder=3,
                 bbox=dict(boxstyle="round,pad=0.3", fc="#eef3fb", ec="#4a6fa5"))
     for lf in desc["leaves"]:
