@@ -94,7 +94,8 @@ def _tree(args: argparse.Namespace) -> int:
     text = {"text": lambda: tree_view.tree_text(desc, title), "json": lambda: tree_view.tree_json(desc),
             "dot": lambda: tree_view.tree_dot(desc, title)}[args.format]()
     if args.action == "export" or args.out:
-        out = args.out or f"tree_carrier{args.carrier}.{ {'text': 'txt'}.get(args.format, args.format) }"
+        suffix = "txt" if args.format == "text" else args.format
+        out = args.out or f"tree_carrier{args.carrier}.{suffix}"
         Path(out).write_text(text + "\n")
         print(out)
     else:
