@@ -29,10 +29,12 @@ is exactly the identity. Steps: each step adds or drops rows of the active set;
 up to ~10 rows this converges in a few steps, `n_newton` bounds the count (the
 numpy twin stops early per sample once a full step was exact).
 
-Fixed (human) blocks: pass `fixed_mask`/`fixed_action`. The objective is the same
-(rows normalized as given) with the human block held at its measured value: after
-normalization the fixed columns are moved to the right-hand side (`absorb_fixed`),
-so SAIL only moves the robot blocks and the human block stays exactly put.
+Fixed (human) blocks: pass `fixed_mask`/`fixed_action`. The fixed columns are
+first moved to the right-hand side (`absorb_fixed`: C_r x_r >= c - C_h a_h), then
+the reduced rows are normalized, so the penalty acts on unit rows of the robot
+subspace that SAIL actually moves (one active row still scales the robots' normal
+component by exactly 1/(1+kappa)); rows that involve only the human become zero
+and are ignored. The human block stays exactly at its measured value.
 
 torch is imported inside the torch functions only: actor processes use the
 numpy twin and never load torch.
@@ -175,12 +177,12 @@ def sail_project_np(
     kappa = np.broadcast_to(np.asarray(kappa, dtype=np.float64), (a.shape[0],))
     if not np.all(np.isfinite(kappa)) or np.any(kappa < 0):
         raise ValueError(f"sail: kappa must be finite and >= 0, got {kappa}")
-    Cn, cn, keep = normalize_rows(C, c, mask, config.row_tol)
-    if fixed_mask is not None:  # rows are normalized as given, then the human block is held fixed
+    if fixed_mask is not None:  # human block held fixed: SAIL acts on the robot subspace
         fixed = np.broadcast_to(np.asarray(fixed_mask, dtype=bool), a.shape)
         human = np.broadcast_to(np.asarray(fixed_action, dtype=np.float64), a.shape)
         a = np.where(fixed, human, a)
-        Cn, cn = absorb_fixed(Cn, cn, fixed, human)
+        C, c = absorb_fixed(C, c, fixed, human)
+    Cn, cn, keep = normalize_rows(C, c, mask, config.row_tol)
 
     eye = np.eye(a.shape[1])
     x = a.copy()
@@ -269,12 +271,12 @@ def sail_project(
     if not bool(torch.isfinite(kappa).all()) or bool((kappa < 0).any()):
         raise ValueError(f"sail: kappa must be finite and >= 0, got {kappa}")
     a = a_st
-    Cn, cn, keep = normalize_rows(C, c, mask, config.row_tol)
-    if fixed_mask is not None:  # rows are normalized as given, then the human block is held fixed
+    if fixed_mask is not None:  # human block held fixed: SAIL acts on the robot subspace
         fixed = torch.as_tensor(fixed_mask, dtype=torch.bool, device=a.device).expand(B, d)
         human = torch.as_tensor(fixed_action, dtype=dtype, device=a.device).expand(B, d)
         a = torch.where(fixed, human, a)
-        Cn, cn = absorb_fixed(Cn, cn, fixed, human)
+        C, c = absorb_fixed(C, c, fixed, human)
+    Cn, cn, keep = normalize_rows(C, c, mask, config.row_tol)
 
     eye = torch.eye(d, dtype=dtype, device=a.device)
     x = a

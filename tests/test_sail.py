@@ -26,18 +26,20 @@ def _reference(a, C, c, kappa, free=None):
         min 1/2||x - a||^2 + kappa/2 ||s||^2   s.t.  C x + s >= c,
 
     (for fixed x the optimal slack is s = [c - C x]_+, so the x-part is the SAIL minimizer).
-    Rows are normalized here; `free` keeps the other coordinates of x at a."""
-    norm = np.linalg.norm(C, axis=1)
-    keep = norm > 1e-9
-    Cn, cn = C[keep] / norm[keep, None], c[keep] / norm[keep]
+    `free` keeps the other coordinates of x at a; the reduced rows are normalized here."""
     free = np.ones(D, bool) if free is None else free
+    c = c - C[:, ~free] @ a[~free]  # fixed coordinates move to the right-hand side
+    Cf = C[:, free]
+    norm = np.linalg.norm(Cf, axis=1)
+    keep = norm > 1e-9
+    Cn, cn = Cf[keep] / norm[keep, None], c[keep] / norm[keep]
     m, nf = len(cn), int(free.sum())
     if m == 0 or kappa == 0:
         return a.copy()
     G = np.diag(np.concatenate([np.ones(nf), np.full(m, kappa)]))
     q = np.concatenate([a[free], np.zeros(m)])
-    A = np.hstack([Cn[:, free], np.eye(m)])
-    b = cn - Cn[:, ~free] @ a[~free]
+    A = np.hstack([Cn, np.eye(m)])
+    b = cn
     z = quadprog.solve_qp(G, q, A.T.copy(), b, 0)[0]
     x = a.copy()
     x[free] = z[:nf]
