@@ -77,7 +77,6 @@ def propose(
 
     if use_sail:
         a_bar = sail_project_np(a_st, C, c, np.asarray(row_mask, dtype=bool), kappa,
-                                n_newton=sail_config.n_newton, damping=sail_config.damping,
                                 fixed_mask=fixed, fixed_action=human, config=sail_config)
     else:
         a_bar = a_st.copy()

@@ -155,14 +155,16 @@ def sail_project_np(
     c,
     mask,
     kappa,
-    n_newton: int = _DEFAULT.n_newton,
-    damping: str = _DEFAULT.damping,
+    n_newton: int | None = None,
+    damping: str | None = None,
     fixed_mask=None,
     fixed_action=None,
     config: SailConfig = _DEFAULT,
 ) -> np.ndarray:
     """Eq. (sail_projection) in numpy (float64). a_st [B,d], C [B,M,d], c [B,M], mask [B,M],
-    kappa scalar or [B] (>= 0). Returns a_bar [B,d]."""
+    kappa scalar or [B] (>= 0). n_newton/damping default to `config`'s. Returns a_bar [B,d]."""
+    n_newton = config.n_newton if n_newton is None else n_newton
+    damping = config.damping if damping is None else damping
     a = np.asarray(a_st, dtype=np.float64)
     C = np.asarray(C, dtype=np.float64)
     c = np.asarray(c, dtype=np.float64)
@@ -244,8 +246,8 @@ def sail_project(
     c: "torch.Tensor",
     mask: "torch.Tensor",
     kappa,
-    n_newton: int = _DEFAULT.n_newton,
-    damping: str = _DEFAULT.damping,
+    n_newton: int | None = None,
+    damping: str | None = None,
     fixed_mask=None,
     fixed_action=None,
     config: SailConfig = _DEFAULT,
@@ -253,10 +255,13 @@ def sail_project(
     """Eq. (sail_projection) in torch, unrolled and differentiable w.r.t. a_st (and C, c).
 
     Same forward as `sail_project_np`; computes in the dtype of a_st (use float64 for
-    large kappa). kappa: float or tensor broadcastable to [B].
+    large kappa). kappa: float or tensor broadcastable to [B]. n_newton/damping default
+    to `config`'s.
     """
     import torch
 
+    n_newton = config.n_newton if n_newton is None else n_newton
+    damping = config.damping if damping is None else damping
     _check_shapes(a_st, C, c, mask)
     _check_options(n_newton, damping)
     if mask.dtype != torch.bool:
