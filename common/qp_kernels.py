@@ -328,51 +328,6 @@ def solve_batch_active_set(a, C, c, row_mask, fixed, lo, hi, tol, dep_tol, zero_
 
 
 @njit(cache=True)
-def _ls_householder(A, idx, p, n, g, W, rhs, zout):
-    """Least squares min ‖Σ_j z_j A[idx[j]] − g‖ by Householder QR (p ≤ n columns)."""
-    for j in range(p):
-        for i in range(n):
-            W[i, j] = A[idx[j], i]
-    for i in range(n):
-        rhs[i] = g[i]
-    for j in range(p):
-        nx = 0.0
-        for i in range(j, n):
-            nx += W[i, j] * W[i, j]
-        nx = math.sqrt(nx)
-        if nx == 0.0:
-            continue
-        alpha = -nx if W[j, j] >= 0.0 else nx
-        v0 = W[j, j] - alpha
-        vn2 = v0 * v0
-        for i in range(j + 1, n):
-            vn2 += W[i, j] * W[i, j]
-        if vn2 > 0.0:
-            # Apply H = I − 2 v vᵀ / vᵀv (v = [v0, W[j+1:, j]]) to the trailing columns and rhs.
-            for col in range(j + 1, p):
-                s = v0 * W[j, col]
-                for i in range(j + 1, n):
-                    s += W[i, j] * W[i, col]
-                f = 2.0 * s / vn2
-                W[j, col] -= f * v0
-                for i in range(j + 1, n):
-                    W[i, col] -= f * W[i, j]
-            s = v0 * rhs[j]
-            for i in range(j + 1, n):
-                s += W[i, j] * rhs[i]
-            f = 2.0 * s / vn2
-            rhs[j] -= f * v0
-            for i in range(j + 1, n):
-                rhs[i] -= f * W[i, j]
-        W[j, j] = alpha
-    for j in range(p - 1, -1, -1):
-        acc = rhs[j]
-        for l in range(j + 1, p):
-            acc -= W[j, l] * zout[l]
-        zout[j] = acc / W[j, j] if abs(W[j, j]) > 1e-300 else 0.0
-
-
-@njit(cache=True)
 def nnls(A, k, n, g, lam, inP, idx, W, rhs, zls, resid):
     """Lawson–Hanson NNLS: min ‖Aᵀλ − g‖ over λ ≥ 0, generators are rows A[:k, :n].
 
@@ -408,7 +363,48 @@ def nnls(A, k, n, g, lam, inP, idx, W, rhs, zls, resid):
         idx[p] = best
         p += 1
         for _inner in range(3 * k + 5):
-            _ls_householder(A, idx, p, n, g, W, rhs, zls)
+            # Least squares z = argmin ‖Σ_jj z_jj A[idx[jj]] − g‖ by Householder QR
+            # (inlined: a helper call per pass costs more than the arithmetic).
+            for jj in range(p):
+                for i in range(n):
+                    W[i, jj] = A[idx[jj], i]
+            for i in range(n):
+                rhs[i] = g[i]
+            for jj in range(p):
+                nx = 0.0
+                for i in range(jj, n):
+                    nx += W[i, jj] * W[i, jj]
+                nx = math.sqrt(nx)
+                if nx == 0.0:
+                    continue
+                hh = -nx if W[jj, jj] >= 0.0 else nx
+                v0 = W[jj, jj] - hh
+                vn2 = v0 * v0
+                for i in range(jj + 1, n):
+                    vn2 += W[i, jj] * W[i, jj]
+                if vn2 > 0.0:
+                    # Apply H = I − 2 v vᵀ / vᵀv, v = [v0, W[jj+1:, jj]], to trailing columns and rhs.
+                    for col in range(jj + 1, p):
+                        sacc = v0 * W[jj, col]
+                        for i in range(jj + 1, n):
+                            sacc += W[i, jj] * W[i, col]
+                        f = 2.0 * sacc / vn2
+                        W[jj, col] -= f * v0
+                        for i in range(jj + 1, n):
+                            W[i, col] -= f * W[i, jj]
+                    sacc = v0 * rhs[jj]
+                    for i in range(jj + 1, n):
+                        sacc += W[i, jj] * rhs[i]
+                    f = 2.0 * sacc / vn2
+                    rhs[jj] -= f * v0
+                    for i in range(jj + 1, n):
+                        rhs[i] -= f * W[i, jj]
+                W[jj, jj] = hh
+            for jj in range(p - 1, -1, -1):
+                acc = rhs[jj]
+                for l in range(jj + 1, p):
+                    acc -= W[jj, l] * zls[l]
+                zls[jj] = acc / W[jj, jj] if abs(W[jj, jj]) > 1e-300 else 0.0
             alpha = np.inf
             for jj in range(p):
                 if zls[jj] <= 0.0:
