@@ -387,6 +387,49 @@ def build_rows(geom: SafetyGeometry, walls: np.ndarray, cfg: SafetyConfig):
     carrier-wall, 1 payload-wall, 2 formation), ``entity [K,M]`` (carrier,
     payload point or pair index; -1 on padding) and ``wall [K,M]`` (-1 if none).
     See the module docstring for the derivation, conservativeness and budget.
+    Computed per env by the numba kernel ``common.env.kernels.safety_rows``;
+    :func:`build_rows_reference` is the same computation in numpy.
+    """
+    from common.env.kernels import safety_rows
+
+    if not isinstance(geom, SafetyGeometry):
+        raise TypeError(f"geom must be a SafetyGeometry, got {type(geom).__name__}")
+    K = geom.num_envs
+    walls = np.asarray(walls, dtype=np.float64)
+    _check_walls(walls, K)
+    walls = np.ascontiguousarray(walls[None] if walls.ndim == 2 else walls)
+    M = int(cfg.max_rows)
+    cb, pb = cfg.carrier_budget, cfg.payload_budget
+    C = np.zeros((K, M, ACT_DIM))
+    c = np.zeros((K, M))
+    mask = np.zeros((K, M), dtype=bool)
+    h = np.zeros((K, M))
+    entity = np.full((K, M), -1, dtype=np.int64)
+    entity[:, cb + pb:] = np.repeat(np.arange(len(PAIRS)), 2)
+    wall = np.full((K, M), -1, dtype=np.int64)
+    ok = safety_rows(geom.carrier_xy, geom.carrier_yaw, geom.payload_xy, geom.payload_yaw,
+                     geom.payload_points_local, geom.grasp_local, geom.pair_rest, walls,
+                     float(cfg.max_step_xy), float(cfg.alpha), float(cfg.carrier_radius),
+                     float(cfg.payload_margin), float(cfg.grasp_tol), float(cfg.search_radius),
+                     int(cfg.walls_per_carrier), int(cfg.walls_per_point), cb, pb,
+                     C, c, mask, h, entity, wall)
+    if not ok:
+        raise ValueError("grasp points coincide: the payload rotation fit is undefined")
+    kinds = np.repeat([KIND_CARRIER_WALL, KIND_PAYLOAD_WALL, KIND_FORMATION], [cb, pb, N_FORMATION_ROWS])
+    info = {"h": h, "kind": np.broadcast_to(kinds, (K, M)).copy(), "entity": entity, "wall": wall}
+    return C, c, mask, info
+
+
+def build_rows_reference(geom: SafetyGeometry, walls: np.ndarray, cfg: SafetyConfig):
+    """Pure-numpy :func:`build_rows` (the reference the numba kernel is tested against).
+
+    Affine rows ``C a >= c`` (Eq. joint_safety_rows) for the next stacked action.
+
+    Returns ``C [K,M,9]``, ``c [K,M]``, ``row_mask [K,M]`` and ``info`` with
+    ``h [K,M]`` (barrier value of each row at ``x``), ``kind [K,M]`` (0
+    carrier-wall, 1 payload-wall, 2 formation), ``entity [K,M]`` (carrier,
+    payload point or pair index; -1 on padding) and ``wall [K,M]`` (-1 if none).
+    See the module docstring for the derivation, conservativeness and budget.
     """
     if not isinstance(geom, SafetyGeometry):
         raise TypeError(f"geom must be a SafetyGeometry, got {type(geom).__name__}")
