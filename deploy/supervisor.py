@@ -1,0 +1,628 @@
+"""Process supervisor for a multi-process SAGE run.
+
+    sage up --actors 3 --updates 50                      # fresh run, local router
+    sage up --config runs/<id>/config.json               # a saved run config
+    sage train --mode supervised ...                     # calls run_supervised()
+    python -m deploy.supervisor --config RUN.json --roles actor --actor-ids 4-7   # actors on another host
+
+It launches a Zenoh router (unless the config names one in
+``transport.connect``), the shield, the learner and N actors, each as its own
+process group (``python -m services.<role> --config RUN.json``), then:
+
+* restarts a service that crashed (non-zero exit or killed) after an
+  exponential backoff, and gives up cleanly -- everything stopped, exit code
+  ``EXIT_GAVE_UP``, a one-line reason -- when one service crashes more than
+  ``restart_budget`` times within ``restart_window_s`` (no restart storms);
+* ends the run when the learner exits 0 (budget reached): it publishes a
+  ``control`` stop for the run (remote actors too) and stops the rest;
+* on SIGINT/SIGTERM sends SIGTERM to every child's process group, waits up to
+  ``term_deadline_s``, then SIGKILLs what is left (a second signal skips the
+  wait), so no child or grandchild outlives it; children also get SIGTERM from
+  the kernel if the supervisor itself is SIGKILLed (``deploy/pdeathsig.py``);
+* shows one live status line assembled from the services' ``status``
+  heartbeats (docs/wire.md), and keeps ``status.json`` in the run directory;
+* appends its events (start, exit code, backoff, restart, give_up, stop,
+  kill, shutdown) as JSONL to ``<run_dir>/supervisor.jsonl``; each child's
+  stdout/stderr go to ``<run_dir>/logs/<service>.log``.
+
+The supervisor opens its own Zenoh session only after its children are
+launched, and it starts processes only with ``subprocess`` (fork + exec), so
+no child ever inherits a live Zenoh session.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections import deque
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Protocol, Sequence
+
+EXIT_GAVE_UP = 1
+ROLES = ("learner", "shield", "actor")
+# Prometheus port convention (deploy/prometheus.yml): base+0 learner, base+1 shield, base+10+i actor i
+METRICS_OFFSETS = {"learner": 0, "shield": 1, "actor_base": 10}
+
+
+@dataclass
+class SupervisorConfig:
+    backoff_initial_s: float = 0.5     # delay before the first restart of a crashed service
+    backoff_factor: float = 2.0        # each further consecutive crash multiplies the delay
+    backoff_max_s: float = 30.0
+    restart_budget: int = 5            # restarts of one service allowed within restart_window_s;
+    restart_window_s: float = 300.0    # one crash more and the supervisor gives up
+    stable_after_s: float = 60.0       # up this long before a crash: backoff starts over
+    term_deadline_s: float = 15.0      # SIGTERM, wait this long, then SIGKILL
+    poll_s: float = 0.1
+    status_period_s: float = 1.0       # live line and status.json refresh
+    status_log_period_s: float = 10.0  # when stderr is not a terminal: one status log line this often
+    ready_timeout_s: float = 30.0      # the local router must accept TCP connections by then
+    parent_death_signal: bool = True   # children get SIGTERM if the supervisor dies (Linux)
+
+    def validate(self) -> "SupervisorConfig":
+        if self.backoff_initial_s < 0 or self.backoff_max_s < self.backoff_initial_s or self.backoff_factor < 1:
+            raise ValueError("need 0 <= backoff_initial_s <= backoff_max_s and backoff_factor >= 1")
+        if self.restart_budget < 0 or self.restart_window_s <= 0:
+            raise ValueError("need restart_budget >= 0 and restart_window_s > 0")
+        if self.term_deadline_s < 0 or self.poll_s <= 0:
+            raise ValueError("need term_deadline_s >= 0 and poll_s > 0")
+        return self
+
+    def backoff(self, consecutive_crashes: int) -> float:
+        """Delay before restart number ``consecutive_crashes`` (1, 2, ...)."""
+        return min(self.backoff_max_s, self.backoff_initial_s * self.backoff_factor ** (consecutive_crashes - 1))
+
+
+@dataclass
+class ServiceSpec:
+    name: str                          # file-safe: "router", "shield", "learner", "actor-0"
+    argv: list[str]
+    ends_run: bool = False             # exit code 0 of this service ends the run (learner: budget reached)
+    stop_wave: int = 0                 # shutdown order: lower waves are stopped first (router last)
+    ready_tcp: tuple[str, int] | None = None  # start the next services only once this accepts connections
+
+    def __post_init__(self):
+        if not self.name or any(ch in self.name for ch in "/\\ \t\n") or not self.argv:
+            raise ValueError(f"bad service spec {self.name!r}: need a file-safe name and a command")
+
+
+class StatusSource(Protocol):
+    def line(self) -> str: ...
+    def snapshot(self) -> dict: ...
+    def close(self) -> None: ...
+
+
+class _Child:
+    """One supervised service and its restart bookkeeping."""
+
+    def __init__(self, spec: ServiceSpec):
+        self.spec = spec
+        self.proc: subprocess.Popen | None = None
+        self.state = "pending"         # pending, running, backoff, done, failed, stopped
+        self.started = 0.0
+        self.crashes = 0               # consecutive crashes (backoff exponent)
+        self.restarts: deque[float] = deque()  # restart times within the window (budget)
+        self.next_start = 0.0
+        self.starts = 0
+        self.last_code: int | None = None
+
+
+class Supervisor:
+    """Runs ``specs`` as child process groups; see the module docstring.
+
+    ``run()`` is the blocking loop with signal handling; ``start()``,
+    ``poll()`` and ``shutdown()`` are its steps, usable on their own (tests,
+    ``sage bench system``).
+    """
+
+    def __init__(self, specs: Sequence[ServiceSpec], run_dir: str | Path, cfg: SupervisorConfig | None = None,
+                 *, cwd: str | None = None, env: dict | None = None, out=None):
+        names = [s.name for s in specs]
+        if len(set(names)) != len(names):
+            raise ValueError(f"duplicate service names in {names}")
+        self.cfg = (cfg or SupervisorConfig()).validate()
+        self.children = [_Child(s) for s in specs]
+        self.run_dir = Path(run_dir)
+        self.log_dir = self.run_dir / "logs"
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        self.events_path = self.run_dir / "supervisor.jsonl"
+        self.cwd = cwd
+        self.env = env
+        self.out = out if out is not None else sys.stderr
+        self.outcome: tuple[int, str] | None = None
+        self.signals: deque[int] = deque()
+        self._events_lock = threading.Lock()
+
+    # ------------------------------------------------------------- events
+    def event(self, kind: str, **fields) -> None:
+        row = {"t": time.time(), "event": kind, **fields}
+        with self._events_lock, open(self.events_path, "a") as f:
+            f.write(json.dumps(row) + "\n")
+
+    def child(self, name: str) -> _Child:
+        for c in self.children:
+            if c.spec.name == name:
+                return c
+        raise KeyError(name)
+
+    # ------------------------------------------------------------- launching
+    def _launch(self, c: _Child) -> None:
+        argv = list(c.spec.argv)
+        if self.cfg.parent_death_signal and sys.platform.startswith("linux"):
+            argv = [sys.executable, "-m", "deploy.pdeathsig", str(os.getpid()), "--", *argv]
+        with open(self.log_dir / f"{c.spec.name}.log", "ab") as log:
+            # own session = own process group: a terminal's Ctrl-C reaches only the
+            # supervisor, and killpg() reaches the service and anything it spawned
+            c.proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
+                                      start_new_session=True, cwd=self.cwd, env=self.env)
+        c.state, c.started = "running", time.monotonic()
+        c.starts += 1
+        self.event("start", service=c.spec.name, pid=c.proc.pid, attempt=c.starts, argv=c.spec.argv)
+
+    def _wait_ready(self, c: _Child) -> None:
+        host, port = c.spec.ready_tcp
+        deadline = time.monotonic() + self.cfg.ready_timeout_s
+        while time.monotonic() < deadline:
+            if c.proc.poll() is not None:
+                raise RuntimeError(f"{c.spec.name} exited with code {c.proc.returncode} during start-up; "
+                                   f"see {self.log_dir / (c.spec.name + '.log')}")
+            try:
+                with socket.create_connection((host, port), timeout=0.5):
+                    self.event("ready", service=c.spec.name, endpoint=f"{host}:{port}")
+                    return
+            except OSError:
+                time.sleep(0.05)
+        raise RuntimeError(f"{c.spec.name} did not accept connections on {host}:{port} "
+                           f"within {self.cfg.ready_timeout_s} s")
+
+    def start(self) -> None:
+        for c in self.children:
+            self._launch(c)
+            if c.spec.ready_tcp is not None:
+                self._wait_ready(c)
+
+    # ------------------------------------------------------------- monitoring
+    def _kill_group(self, pid: int, sig: int) -> None:
+        try:
+            os.killpg(pid, sig)  # the child leads its own group: pgid == pid
+        except (ProcessLookupError, PermissionError):
+            pass
+
+    def _reaped(self, c: _Child, code: int, how: str = "exit") -> float:
+        pid = c.proc.pid
+        self._kill_group(pid, signal.SIGKILL)  # whatever the service left behind in its group
+        c.proc, c.last_code = None, code
+        uptime = time.monotonic() - c.started
+        self.event(how, service=c.spec.name, pid=pid, code=code, uptime_s=round(uptime, 3))
+        return uptime
+
+    def _finish(self, code: int, message: str) -> None:
+        if self.outcome is None:
+            self.outcome = (code, message)
+
+    def _crashed(self, c: _Child, code: int, uptime: float) -> None:
+        now = time.monotonic()
+        if uptime >= self.cfg.stable_after_s:
+            c.crashes = 0
+        c.crashes += 1
+        while c.restarts and now - c.restarts[0] > self.cfg.restart_window_s:
+            c.restarts.popleft()
+        if len(c.restarts) >= self.cfg.restart_budget:
+            c.state = "failed"
+            msg = (f"giving up: {c.spec.name} crashed {len(c.restarts) + 1} times within "
+                   f"{self.cfg.restart_window_s:g} s (last exit code {code}); "
+                   f"see {self.log_dir / (c.spec.name + '.log')}")
+            self.event("give_up", service=c.spec.name, code=code, restarts=len(c.restarts), message=msg)
+            self._finish(EXIT_GAVE_UP, msg)
+            return
+        delay = self.cfg.backoff(c.crashes)
+        c.restarts.append(now)
+        c.state, c.next_start = "backoff", now + delay
+        self.event("backoff", service=c.spec.name, code=code, delay_s=delay, consecutive=c.crashes,
+                   restarts_in_window=len(c.restarts))
+
+    def poll(self) -> int | None:
+        """Reap exits, schedule and perform restarts; the exit code once the run is over."""
+        for c in self.children:
+            if self.outcome is not None:
+                break
+            if c.proc is not None:
+                code = c.proc.poll()
+                if code is None:
+                    continue
+                uptime = self._reaped(c, code)
+                if code == 0:
+                    c.state = "done"
+                    if c.spec.ends_run:
+                        self._finish(0, f"{c.spec.name} finished")
+                else:
+                    self._crashed(c, code, uptime)
+            elif c.state == "backoff" and time.monotonic() >= c.next_start:
+                self.event("restart", service=c.spec.name, attempt=c.starts + 1)
+                self._launch(c)
+        if self.outcome is None and not any(c.spec.ends_run for c in self.children) \
+                and all(c.state == "done" for c in self.children if c.spec.stop_wave == 0):
+            self._finish(0, "all services finished")
+        return self.outcome[0] if self.outcome else None
+
+    # ------------------------------------------------------------- shutdown
+    def shutdown(self, reason: str = "shutdown") -> None:
+        """SIGTERM every running child group, wave by wave; SIGKILL after the deadline."""
+        self.event("shutdown", reason=reason)
+        for wave in sorted({c.spec.stop_wave for c in self.children}):
+            group = [c for c in self.children if c.spec.stop_wave == wave]
+            for c in group:
+                if c.state in ("backoff", "pending"):
+                    c.state = "stopped"  # a pending restart is cancelled
+            running = [c for c in group if c.proc is not None]
+            for c in running:
+                self._kill_group(c.proc.pid, signal.SIGTERM)
+                self.event("stop", service=c.spec.name, pid=c.proc.pid, signal="SIGTERM")
+            deadline = time.monotonic() + self.cfg.term_deadline_s
+            n_signals = len(self.signals)
+            while running and time.monotonic() < deadline and len(self.signals) == n_signals:
+                for c in list(running):
+                    code = c.proc.poll()
+                    if code is not None:
+                        self._reaped(c, code)
+                        c.state = "stopped"
+                        running.remove(c)
+                if running:
+                    time.sleep(min(self.cfg.poll_s, 0.05))
+            for c in running:  # past the deadline (or a second signal): no more waiting
+                pid = c.proc.pid
+                self._kill_group(pid, signal.SIGKILL)
+                self.event("kill", service=c.spec.name, pid=pid, signal="SIGKILL")
+                c.proc.wait()
+                self._reaped(c, c.proc.returncode)
+                c.state = "stopped"
+
+    # ------------------------------------------------------------- main loop
+    def run(self, status_factory: Callable[[], StatusSource | None] | None = None,
+            on_finish: Callable[[StatusSource | None], None] | None = None,
+            install_signals: bool = True) -> int:
+        """Start everything, supervise until the run ends, a service exhausts
+        its restart budget, or a signal arrives; always shut down cleanly.
+
+        ``status_factory`` is called once the children are launched (so the
+        supervisor's own Zenoh session opens after every fork);
+        ``on_finish(status)`` runs before the shutdown when the run ended normally.
+        """
+        old = {}
+        if install_signals:
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                old[sig] = signal.signal(sig, lambda signum, _f: self.signals.append(signum))
+        status: StatusSource | None = None
+        reason = "error"
+        tty = hasattr(self.out, "isatty") and self.out.isatty()
+        try:
+            self.event("supervisor_start", pid=os.getpid(), services=[c.spec.name for c in self.children],
+                       config=asdict(self.cfg))
+            self.start()
+            status = status_factory() if status_factory else None
+            last_line = last_log = time.monotonic()
+            while True:
+                if self.signals:
+                    sig = self.signals[0]
+                    self._finish(128 + sig, f"stopped by {signal.Signals(sig).name}")
+                    reason = signal.Signals(sig).name
+                    break
+                if self.poll() is not None:
+                    reason = "finished" if self.outcome[0] == 0 else "gave_up"
+                    if self.outcome[0] == 0 and on_finish is not None:
+                        on_finish(status)
+                    break
+                now = time.monotonic()
+                if status is not None and now - last_line >= self.cfg.status_period_s:
+                    last_line = now
+                    log_now = now - last_log >= self.cfg.status_log_period_s
+                    last_log = now if log_now else last_log
+                    self._show_status(status, tty, log_now)
+                time.sleep(self.cfg.poll_s)
+        except BaseException as exc:
+            self._finish(EXIT_GAVE_UP, f"supervisor error: {exc}")
+            self.event("error", message=str(exc))
+            raise
+        finally:
+            self.shutdown(reason)
+            if status is not None:
+                self._write_status(status)
+                status.close()
+            if tty:
+                self.out.write("\n")
+            for sig, handler in old.items():
+                signal.signal(sig, handler)
+            code, message = self.outcome if self.outcome else (0, "stopped")
+            self.event("supervisor_exit", code=code, message=message)
+            print(f"supervisor: {message} (exit code {code}); events in {self.events_path}", file=self.out)
+        return code
+
+    def summary(self) -> str:
+        running = sum(c.state == "running" for c in self.children)
+        restarts = sum(max(c.starts - 1, 0) for c in self.children)
+        down = [c.spec.name for c in self.children if c.state in ("backoff", "failed")]
+        text = f"procs {running}/{len(self.children)} | restarts {restarts}"
+        return text + (" | down " + ",".join(down) if down else "")
+
+    def _write_status(self, status: StatusSource) -> None:
+        snap = {"t": time.time(), "services": {c.spec.name: {"state": c.state, "pid": c.proc.pid if c.proc else None,
+                                                              "starts": c.starts, "last_code": c.last_code}
+                                               for c in self.children},
+                "status": status.snapshot()}
+        tmp = self.run_dir / "status.json.tmp"
+        tmp.write_text(json.dumps(snap, indent=1, default=str))
+        os.replace(tmp, self.run_dir / "status.json")
+
+    def _show_status(self, status: StatusSource, tty: bool, log_now: bool) -> None:
+        line = f"{status.line()} | {self.summary()}"
+        if tty:
+            self.out.write("\r" + line + "   ")
+            self.out.flush()
+        elif log_now:
+            print(line, file=self.out, flush=True)
+        self._write_status(status)
+
+
+# ----------------------------------------------------------------- status from heartbeats
+class StatusBoard:
+    """Latest ``status`` body of every service of one run, fed by a Zenoh
+    subscription on ``sage/<run>/status/**`` (schema in docs/wire.md)."""
+
+    def __init__(self, run_id: str, stale_after_s: float = 5.0):
+        self.run_id = run_id
+        self.stale_after_s = stale_after_s
+        self.latest: dict[str, dict] = {}
+        self.rejected = 0
+        self._lock = threading.Lock()
+        self._bus = None
+
+    def on_message(self, _key: str, payload: bytes) -> None:
+        from common import wire
+
+        try:
+            msg = wire.decode(payload, run_id=self.run_id, expect="status")
+        except wire.WireError:
+            self.rejected += 1  # shown in status.json; a bad heartbeat never stops the supervisor
+            return
+        body = dict(msg.body, received=time.monotonic())
+        with self._lock:
+            self.latest[f"{body['role']}/{body['id']}"] = body
+
+    def subscribe(self, connect: Sequence[str], mode: str = "client") -> "StatusBoard":
+        from common import keys
+        from common.transport import Bus
+
+        self._bus = Bus.open(connect=list(connect), mode=mode)
+        self._bus.subscribe(keys.status_all(self.run_id), self.on_message)
+        return self
+
+    def stop_run(self) -> None:
+        """Publish a ``control`` stop to every service of the run (also remote ones)."""
+        from common import keys, wire
+
+        if self._bus is not None:
+            self._bus.publish(keys.control(self.run_id), wire.encode(
+                "control", {"command": "stop", "target": "*"}, run_id=self.run_id, sender="supervisor/0", seq=0))
+
+    def fresh(self) -> dict[str, dict]:
+        now = time.monotonic()
+        with self._lock:
+            return {k: b for k, b in self.latest.items() if now - b["received"] <= self.stale_after_s}
+
+    def snapshot(self) -> dict:
+        with self._lock:
+            latest = {k: {f: v for f, v in b.items() if f != "received"} for k, b in self.latest.items()}
+        return {"members": latest, "rejected": self.rejected, "line": self.line()}
+
+    def line(self) -> str:
+        with self._lock:
+            latest = dict(self.latest)
+        return status_line(self.fresh(), latest)
+
+    def close(self) -> None:
+        if self._bus is not None:
+            self._bus.close()
+            self._bus = None
+
+
+def status_line(fresh: dict[str, dict], latest: dict[str, dict] | None = None) -> str:
+    """One line from the heartbeats: env steps/s (sum over actors heard from
+    recently, ``fresh``), parameter version (learner), recent success rate
+    (learner, else the actors' mean), shield p99 solve latency, unhealthy
+    members. Version, success rate and p99 come from ``latest`` (default
+    ``fresh``): a learner busy in a long update keeps its last values."""
+    latest = fresh if latest is None else latest
+    actors = [b for k, b in fresh.items() if k.startswith("actor/")]
+    learner = latest.get("learner/0", {})
+    shield = latest.get("shield/0", {})
+    sps = sum(b["env_steps_per_s"] for b in actors)
+    sr = learner.get("success_rate")
+    if sr is None:
+        srs = [b["success_rate"] for b in actors if b.get("success_rate") is not None]
+        sr = sum(srs) / len(srs) if srs else None
+    p99 = shield.get("shield_p99_s")
+    parts = [f"steps/s {sps:8.1f}", f"version {learner.get('version', -1)}",
+             f"SR {sr:.2f}" if sr is not None else "SR -",
+             f"shield p99 {p99 * 1e3:.2f} ms" if p99 is not None else "shield p99 -",
+             f"actors {len(actors)}"]
+    bad = sorted(k for k, b in fresh.items() if b.get("state") == "unhealthy")
+    if bad:
+        parts.append("UNHEALTHY " + ",".join(bad))
+    return " | ".join(parts)
+
+
+# ----------------------------------------------------------------- SAGE runs
+def default_actor_count() -> int:
+    """One actor per core, leaving one core for the learner and shield (at least 1)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:
+        cores = os.cpu_count() or 1
+    return max(1, cores - 1)
+
+
+def free_tcp_port(host: str = "127.0.0.1") -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def parse_ids(text: str) -> list[int]:
+    """``"0-3,7"`` -> ``[0, 1, 2, 3, 7]``."""
+    out: list[int] = []
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        lo, _, hi = part.partition("-")
+        if not lo.isdigit() or (hi and not hi.isdigit()):
+            raise ValueError(f"bad id range {part!r} (expected e.g. 0-3,7)")
+        out += list(range(int(lo), int(hi or lo) + 1))
+    if not out or len(set(out)) != len(out):
+        raise ValueError(f"bad id list {text!r}: empty or repeated ids")
+    return out
+
+
+def service_specs(config_path: str | Path, roles: Sequence[str] = ROLES, actor_ids: Sequence[int] = (0,),
+                  python: str = sys.executable) -> list[ServiceSpec]:
+    """The documented entry points (docs/wire.md) as supervised services."""
+    bad = set(roles) - set(ROLES)
+    if bad:
+        raise ValueError(f"unknown roles {sorted(bad)}; choose from {ROLES}")
+    cfg = str(config_path)
+    specs = []
+    if "shield" in roles:
+        specs.append(ServiceSpec("shield", [python, "-m", "services.shield", "--config", cfg]))
+    if "learner" in roles:
+        # stopped in the first wave's wake: it checkpoints on SIGTERM
+        specs.append(ServiceSpec("learner", [python, "-m", "services.learner", "--config", cfg], ends_run=True))
+    if "actor" in roles:
+        specs += [ServiceSpec(f"actor-{i}", [python, "-m", "services.actor", "--config", cfg, "--actor-id", str(i)])
+                  for i in actor_ids]
+    return specs
+
+
+def router_spec(port: int, python: str = sys.executable, host: str = "127.0.0.1") -> ServiceSpec:
+    return ServiceSpec("router", [python, "-m", "deploy.router", "--listen", f"tcp/{host}:{port}"],
+                       stop_wave=1, ready_tcp=(host, port))
+
+
+def run_supervised(config_path: str | Path, *, actors: int | None = None, roles: Sequence[str] = ROLES,
+                   actor_ids: Sequence[int] | None = None, supervisor: SupervisorConfig | None = None,
+                   install_signals: bool = True, out=None) -> int:
+    """Run the services of the run config at ``config_path`` as supervised
+    processes until the learner's budget is reached, a signal arrives, or a
+    service exhausts its restart budget. Returns the exit code (0 = finished).
+
+    ``actors`` overrides the config's actor count (the learner waits for one
+    chunk per actor per update). Without ``transport.connect`` in the config a
+    local router is started on a free 127.0.0.1 port. The config the children
+    read is written to ``<run_dir>/supervised_config.json``.
+    """
+    from services.config import TrainConfig
+
+    cfg = TrainConfig.load(config_path)
+    if actors is not None:
+        cfg.actors = int(actors)
+    cfg.mode = "supervised"
+    cfg.actor.exit_on_unhealthy = True  # an actor cut off from the shield exits; we restart it
+    cfg.validate()
+    ids = list(actor_ids) if actor_ids is not None else list(range(cfg.actors))
+    run_dir = Path(cfg.run_dir)
+    specs: list[ServiceSpec] = []
+    if not cfg.transport.connect:
+        port = free_tcp_port()
+        specs.append(router_spec(port))
+        cfg.transport.connect = [f"tcp/127.0.0.1:{port}"]
+        # client mode: everything goes through the router. Peers with gossip
+        # off (common/transport.py) attached to one router do not hear each other.
+        cfg.transport.mode = "client"
+    elif cfg.transport.mode != "client":
+        print(f"supervisor: warning: transport.mode is {cfg.transport.mode!r}; services attached to a router "
+              "should use \"client\" (deploy/README.md)", file=out or sys.stderr)
+    child_config = cfg.save(run_dir / "supervised_config.json")
+    specs += service_specs(child_config, roles, ids)
+    sup = Supervisor(specs, run_dir, supervisor, out=out)
+    board = StatusBoard(cfg.run_id, stale_after_s=max(5.0, 5 * cfg.status_period_s))
+    out = sup.out
+    print(f"supervisor: run {cfg.run_id}, {len(specs)} processes ({', '.join(s.name for s in specs)}), "
+          f"router {cfg.transport.connect[0]}, run dir {run_dir}", file=out, flush=True)
+
+    def open_status():
+        return board.subscribe(cfg.transport.connect)
+
+    def on_finish(status):
+        if status is not None:
+            status.stop_run()  # remote actors of this run stop too
+
+    return sup.run(open_status, on_finish, install_signals=install_signals)
+
+
+# ----------------------------------------------------------------- command line
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", default=None, help="run config JSON (services/config.py); default: a fresh one")
+    p.add_argument("--actors", type=int, default=None,
+                   help=f"number of actors in the run (default: config's value, or cores-1 = {default_actor_count()} "
+                        "for a fresh config)")
+    p.add_argument("--roles", default=",".join(ROLES), help="which services this host runs (default: all)")
+    p.add_argument("--actor-ids", default=None, help="actor ids this host runs, e.g. 2-3 (default: all)")
+    p.add_argument("--connect", action="append", default=None,
+                   help="Zenoh router endpoint, e.g. tcp/10.0.0.1:7447 (repeatable; default: start a local router)")
+    p.add_argument("--metrics-base", type=int, default=None,
+                   help="Prometheus ports: base learner, base+1 shield, base+10+i actor i (e.g. 9400; 0 = off)")
+    fresh = p.add_argument_group("fresh run (without --config)")
+    fresh.add_argument("--scenario", default=None)
+    fresh.add_argument("--method", default=None)
+    fresh.add_argument("--updates", type=int, default=None)
+    fresh.add_argument("--minutes", type=float, default=None)
+    fresh.add_argument("--envs-per-actor", type=int, default=None)
+    fresh.add_argument("--seed", type=int, default=None)
+    fresh.add_argument("--run-id", default=None)
+    fresh.add_argument("--run-dir", default=None)
+
+
+def config_from_args(args) -> Path:
+    """Write the run config the supervisor will use and return its path."""
+    from services.config import TrainConfig
+
+    cfg = TrainConfig.load(args.config) if args.config else TrainConfig(actors=default_actor_count())
+    for name in ("actors", "scenario", "method", "updates", "minutes", "envs_per_actor", "seed", "run_id", "run_dir"):
+        value = getattr(args, name)
+        if value is not None:
+            setattr(cfg, name, value)
+    if args.connect:
+        cfg.transport.connect = list(args.connect)
+        cfg.transport.mode = "client"  # reach the other services through the router
+    if args.metrics_base is not None:
+        base = args.metrics_base
+        cfg.ports.learner = base + METRICS_OFFSETS["learner"] if base else 0
+        cfg.ports.shield = base + METRICS_OFFSETS["shield"] if base else 0
+        cfg.ports.actor_base = base + METRICS_OFFSETS["actor_base"] if base else 0
+    cfg.mode = "supervised"
+    cfg.resolve()
+    return cfg.save(Path(cfg.run_dir) / "config.json")
+
+
+def cmd_up(args) -> int:
+    roles = [r.strip() for r in args.roles.split(",") if r.strip()]
+    try:
+        path = config_from_args(args)
+        ids = parse_ids(args.actor_ids) if args.actor_ids else None
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"sage up: {exc}", file=sys.stderr)
+        return 2
+    return run_supervised(path, roles=roles, actor_ids=ids)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m deploy.supervisor", description="supervise a multi-process SAGE run")
+    add_arguments(p)
+    return cmd_up(p.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
