@@ -204,8 +204,9 @@ def sail_project_np(
         # piece, where grad f = 0: exact, so the sample is done
         exact = np.all(((ct - (Ct @ (xs + dx)[..., None])[..., 0] > 0) & kt) == active, axis=1)
         t = np.ones(len(todo))
-        if damping == "exact" and not exact.all():
-            t = np.where(exact, 1.0, _line_search_np(xs, dx, at, Ct, ct, kap))
+        ls = ~exact if damping == "exact" else np.zeros(len(todo), dtype=bool)
+        if ls.any():
+            t[ls] = _line_search_np(xs[ls], dx[ls], at[ls], Ct[ls], ct[ls], kap[ls])
         x[todo] = xs + t[:, None] * dx
         todo = todo[~exact]
     return x
