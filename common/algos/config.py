@@ -27,7 +27,9 @@ class AlgoConfig:
     tau_end: float = 0.1
     kappa_start: float = 1.0          # SAIL penalty, Eq. (sail_projection)
     kappa_end: float = 30.0
-    sail_newton: int = 3              # unrolled damped Newton steps of the SAIL map
+    # learner-side SAIL gradient: "implicit" (Eq. sail_jacobian at the actors'
+    # converged center, one solve) or "unrolled" (differentiate every Newton step)
+    sail_grad: str = "implicit"
     # critic, Eq. (team_context)
     critic_hidden: int = 128
     encoder_latent: int = 32
@@ -43,12 +45,14 @@ class AlgoConfig:
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"AlgoConfig.{name} must be > 0 (got {getattr(self, name)})")
-        for name in ("epochs", "minibatches", "sail_newton", "tree_depth", "critic_hidden",
+        for name in ("epochs", "minibatches", "tree_depth", "critic_hidden",
                      "encoder_latent"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"AlgoConfig.{name} must be >= 1 (got {getattr(self, name)})")
         if not (0 < self.gamma <= 1 and 0 <= self.gae_lambda <= 1):
             raise ValueError("AlgoConfig needs 0 < gamma <= 1 and 0 <= gae_lambda <= 1")
+        if self.sail_grad not in ("implicit", "unrolled"):
+            raise ValueError(f"AlgoConfig.sail_grad must be 'implicit' or 'unrolled' (got {self.sail_grad!r})")
         if self.talo_sigma < 0 or self.talo_eps < 0 or self.ent_coef < 0:
             raise ValueError("AlgoConfig.talo_sigma, talo_eps and ent_coef must be >= 0")
 

@@ -1,0 +1,501 @@
+"""The five learning methods of Sec. III / IV on hard-tree actors.
+
+| name        | executed action | proposal center              | actor update                     |
+|-------------|-----------------|------------------------------|----------------------------------|
+| happo       | a_prop          | a_ST (identity)              | HAPPO sequential, per carrier    |
+| happo_cbf   | QP(a_prop)      | a_ST (identity)              | HAPPO sequential, per carrier    |
+| talo_cbf    | QP(a_prop)      | a_ST (identity)              | TALO joint step (Eq. talo_projection) |
+| sail_cbf    | QP(a_prop)      | Pi_kappa(x, a_ST) (SAIL)     | HAPPO sequential, per carrier    |
+| sage        | QP(a_prop)      | Pi_kappa(x, a_ST) (SAIL)     | TALO joint step                  |
+
+The shield itself runs on the actor side; for the learner ``shielded`` only
+records that rewards come from ``a_exec``. The likelihood is always the
+proposal density at the stored ``a_prop`` (Eq. action_chain).
+
+HAPPO (Kuba et al.; HARL's scheme): each minibatch draws a random carrier
+order; carrier ``i_m`` maximizes ``E[min(r A M, clip(r) A M)]`` where ``M`` is
+the (detached) product of the updated ratios of the carriers before it, then
+``M`` is multiplied by its own new ratio. SAIL+CBF uses this sequential scheme
+too (the paper builds SAIL+CBF on the HAPPO baseline); a carrier's center is
+computed with its partners' tree outputs detached.
+
+TALO methods update all carriers jointly along ``g_TALO`` (common/talo.py),
+one HVP per minibatch on the full actor parameter vector. The entropy bonus
+gradient is added after the projection (it only touches ``log_std``).
+
+The centralized critic (common/algos/critic.py) is trained after the actors
+on every minibatch, with its own Adam.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from common.algos.config import AlgoConfig, kappa_schedule, tau_schedule
+from common.algos.critic import TeamCritic, ValueNormalizer, compute_gae, next_values
+from common.proposal import proposal_entropy, proposal_log_prob
+from common.sail import SailConfig, absorb_fixed, normalize_rows, sail_project, sail_project_np
+from common.talo import cosine, flat_grad, talo_direction, talo_gap, unflatten_like
+from common.tree import TeamPolicy, TreeConfig
+
+N_AGENTS = 3
+ACT_DIM = 3
+STATE_FORMAT_VERSION = 1
+
+METHOD_FLAGS: dict[str, dict[str, bool]] = {
+    "happo": dict(shielded=False, uses_sail=False, uses_talo=False),
+    "happo_cbf": dict(shielded=True, uses_sail=False, uses_talo=False),
+    "talo_cbf": dict(shielded=True, uses_sail=False, uses_talo=True),
+    "sail_cbf": dict(shielded=True, uses_sail=True, uses_talo=False),
+    "sage": dict(shielded=True, uses_sail=True, uses_talo=True),
+}
+METHODS = tuple(METHOD_FLAGS)
+
+# Batch arrays the learner reads, with their shapes after the [T, K] axes.
+# "final_obs" is needed only where some step is truncated.
+_REQUIRED = {
+    "obs": ("N", "O"), "C": ("M", "D"), "c": ("M",), "row_mask": ("M",),
+    "fixed_mask": ("D",), "a_st": ("D",), "a_prop": ("D",), "a_exec": ("D",),
+    "logp": ("N",), "reward": (), "terminated": (), "truncated": (),
+}
+
+
+@dataclass
+class Minibatch:
+    """Flat torch views of one minibatch (B samples)."""
+    obs: Tensor        # [B, N, O]
+    state: Tensor      # [B, S]
+    C: Tensor          # [B, M, D]
+    c: Tensor          # [B, M]
+    row_mask: Tensor   # [B, M] bool
+    fixed: Tensor      # [B, D] bool
+    a_prop: Tensor     # [B, D]
+    logp_old: Tensor   # [B, N]
+    adv: Tensor        # [B]
+    ret: Tensor        # [B] normalized returns (critic targets)
+    active: Tensor     # [B, N] bool: robot-controlled carrier blocks
+
+    def index(self, idx: Tensor) -> "Minibatch":
+        return Minibatch(**{k: v[idx] for k, v in self.__dict__.items()})
+
+
+class Method:
+    """One learner: hard-tree team policy, centralized critic and optimizers."""
+
+    def __init__(self, name: str, cfg: AlgoConfig, obs_dim: int, state_dim: int,
+                 n_agents: int = N_AGENTS):
+        if name not in METHOD_FLAGS:
+            raise ValueError(f"unknown method {name!r}; choose one of {', '.join(METHODS)}")
+        if obs_dim < 1 or state_dim < 0:
+            raise ValueError(f"bad dims obs_dim={obs_dim}, state_dim={state_dim}")
+        self.name, self.cfg = name, cfg
+        self.obs_dim, self.state_dim, self.n_agents = int(obs_dim), int(state_dim), n_agents
+        flags = METHOD_FLAGS[name]
+        self.shielded: bool = flags["shielded"]
+        self.uses_sail: bool = flags["uses_sail"]
+        self.uses_talo: bool = flags["uses_talo"]
+        with torch.random.fork_rng():
+            torch.manual_seed(cfg.seed)
+            self.policy = TeamPolicy(
+                n_agents, obs_dim,
+                config=TreeConfig(depth=cfg.tree_depth, init_log_std=cfg.init_log_std),
+            )
+            self.critic = TeamCritic(
+                n_agents, obs_dim, state_dim if cfg.critic_uses_state else 0,
+                hidden=cfg.critic_hidden, latent=cfg.encoder_latent,
+            )
+        self.value_norm = ValueNormalizer()
+        self.trees = list(self.policy.trees)
+        self.groups = [list(t.parameters()) for t in self.trees]
+        self.actor_params = [p for g in self.groups for p in g]
+        # one Adam per carrier (HARL style; TALO steps all of them together)
+        self.actor_opts = [torch.optim.Adam(g, lr=cfg.actor_lr, eps=1e-5) for g in self.groups]
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr, eps=1e-5)
+        # the learner's SAIL forward must equal the actors' (common/rollout.py defaults)
+        self.sail_config = SailConfig()
+        self.gen = torch.Generator().manual_seed(cfg.seed + 1)
+        self.updates = 0
+        self.last_happo_factors: dict[int, Tensor] = {}   # carrier -> M used (for tests)
+
+    # ------------------------------------------------------------------ public API
+
+    def actor_settings(self, progress: float) -> dict[str, float]:
+        """Schedules shared with the actors. ``kappa = 0`` means the identity
+        center (Pi_0 is the identity), used by the methods without SAIL."""
+        return {
+            "kappa": kappa_schedule(self.cfg, progress) if self.uses_sail else 0.0,
+            "tau": tau_schedule(self.cfg, progress),
+        }
+
+    def policy_params(self) -> dict[str, np.ndarray]:
+        return self.policy.export_params()
+
+    def update(self, batch: dict[str, np.ndarray], progress: float) -> dict[str, float]:
+        """One learner update on a rollout batch (see docs/interfaces.md)."""
+        settings = self.actor_settings(progress)
+        tau, kappa = settings["tau"], settings["kappa"]
+        data, batch_diag = self._prepare(batch)
+        B = data.obs.shape[0]
+        n_mb = min(self.cfg.minibatches, B)
+        sums: dict[str, float] = {}
+        counts: dict[str, int] = {}
+
+        def log(stats: dict[str, float]) -> None:
+            for k, v in stats.items():
+                sums[k] = sums.get(k, 0.0) + float(v)
+                counts[k] = counts.get(k, 0) + 1
+
+        for epoch in range(self.cfg.epochs):
+            perm = torch.randperm(B, generator=self.gen)
+            for j, idx in enumerate(torch.tensor_split(perm, n_mb)):
+                mb = data.index(idx)
+                if epoch == 0 and j == 0:
+                    log(self._first_minibatch_diagnostics(mb, tau, kappa))
+                if self.uses_talo:
+                    log(self._talo_step(mb, tau, kappa))
+                else:
+                    log(self._happo_step(mb, tau, kappa))
+                log(self._critic_step(mb))
+        self.updates += 1
+        diag = {k: sums[k] / counts[k] for k in sums}
+        diag.update(batch_diag)
+        diag.update(tau=tau, kappa=kappa, updates=float(self.updates))
+        return diag
+
+    # ------------------------------------------------------------------ batch preparation
+
+    def _prepare(self, batch: dict[str, np.ndarray]) -> tuple[Minibatch, dict[str, float]]:
+        dims = self._check_batch(batch)
+        T, K = dims["T"], dims["K"]
+        f32, f64 = torch.float32, torch.float64
+        obs = torch.as_tensor(np.asarray(batch["obs"]), dtype=f32)
+        use_state = self.critic.state_dim > 0
+        state = torch.as_tensor(np.asarray(batch["state"]), dtype=f32) if use_state \
+            else torch.zeros(T, K, 0)
+        terminated = np.asarray(batch["terminated"], dtype=bool)
+        truncated = np.asarray(batch["truncated"], dtype=bool) & ~terminated
+
+        # values of the visited, last and pre-reset states (normalized -> returns scale)
+        with torch.no_grad():
+            def values(o: Tensor, s: Tensor) -> np.ndarray:
+                v = self.critic(o.reshape(-1, self.n_agents, self.obs_dim),
+                                s.reshape(-1, s.shape[-1]) if use_state else None)
+                return self.value_norm.denormalize(v).double().numpy()
+
+            value = values(obs, state).reshape(T, K)
+            last_state = torch.as_tensor(np.asarray(batch["last_state"]), dtype=f32) if use_state \
+                else torch.zeros(K, 0)
+            last_value = values(torch.as_tensor(np.asarray(batch["last_obs"]), dtype=f32), last_state)
+            final_value = np.zeros((T, K))
+            if truncated.any():
+                if "final_obs" not in batch:
+                    raise ValueError("batch has truncated steps but no 'final_obs' [T,K,N,obs_dim]: "
+                                     "the critic needs the pre-reset observation to bootstrap")
+                fo = torch.as_tensor(np.asarray(batch["final_obs"])[truncated], dtype=f32)
+                fs = torch.as_tensor(np.asarray(batch["final_state"])[truncated], dtype=f32) \
+                    if use_state else None
+                final_value[truncated] = values(fo, fs)
+        adv, ret = compute_gae(
+            batch["reward"], value, next_values(value, last_value, final_value, truncated),
+            terminated, truncated, self.cfg.gamma, self.cfg.gae_lambda,
+        )
+        self.value_norm.update(torch.as_tensor(ret))
+        ret_norm = self.value_norm.normalize(torch.as_tensor(ret)).float()
+        adv_t = torch.as_tensor(adv, dtype=f32)
+        if self.cfg.normalize_advantages and adv_t.numel() > 1:
+            adv_t = (adv_t - adv_t.mean()) / (adv_t.std() + 1e-8)
+
+        B = T * K
+        fixed = torch.as_tensor(np.asarray(batch["fixed_mask"]), dtype=torch.bool).reshape(B, -1)
+        data = Minibatch(
+            obs=obs.reshape(B, self.n_agents, self.obs_dim),
+            state=state.reshape(B, state.shape[-1]),
+            C=torch.as_tensor(np.asarray(batch["C"]), dtype=f64).reshape(B, dims["M"], -1),
+            c=torch.as_tensor(np.asarray(batch["c"]), dtype=f64).reshape(B, dims["M"]),
+            row_mask=torch.as_tensor(np.asarray(batch["row_mask"]), dtype=torch.bool).reshape(B, -1),
+            fixed=fixed,
+            a_prop=torch.as_tensor(np.asarray(batch["a_prop"]), dtype=f64).reshape(B, -1),
+            logp_old=torch.as_tensor(np.asarray(batch["logp"]), dtype=f64).reshape(B, -1),
+            adv=adv_t.reshape(B),
+            ret=ret_norm.reshape(B),
+            active=~fixed.view(B, self.n_agents, ACT_DIM).any(-1),
+        )
+        return data, self._batch_diagnostics(batch, adv, ret)
+
+    def _check_batch(self, batch: dict[str, np.ndarray]) -> dict[str, int]:
+        missing = [k for k in _REQUIRED if k not in batch]
+        for k in ("last_obs",) + (("state", "last_state") if self.critic.state_dim else ()):
+            if k not in batch:
+                missing.append(k)
+        if missing:
+            raise ValueError(f"batch is missing {missing}")
+        T, K = np.shape(batch["reward"])[:2] if np.ndim(batch["reward"]) == 2 else (None, None)
+        if T is None:
+            raise ValueError(f"batch['reward'] must be [T,K], got {np.shape(batch['reward'])}")
+        M = np.shape(batch["C"])[2] if np.ndim(batch["C"]) == 4 else -1
+        dims = {"T": T, "K": K, "N": self.n_agents, "O": self.obs_dim, "M": M,
+                "D": self.n_agents * ACT_DIM}
+        for key, tail in _REQUIRED.items():
+            want = (T, K) + tuple(dims[a] for a in tail)
+            if np.shape(batch[key]) != want:
+                raise ValueError(f"batch[{key!r}] has shape {np.shape(batch[key])}, expected {want}")
+        if np.shape(batch["last_obs"]) != (K, self.n_agents, self.obs_dim):
+            raise ValueError(f"batch['last_obs'] has shape {np.shape(batch['last_obs'])}, "
+                             f"expected {(K, self.n_agents, self.obs_dim)}")
+        for key in ("obs", "a_prop", "logp", "reward", "C", "c"):
+            if not np.all(np.isfinite(batch[key])):
+                raise ValueError(f"batch[{key!r}] contains NaN/Inf")
+        return dims
+
+    @staticmethod
+    def _batch_diagnostics(batch, adv: np.ndarray, ret: np.ndarray) -> dict[str, float]:
+        """Proposal violation rate of the raw nominal action and the mean
+        proposal-execution correction ||a_exec - a_st||."""
+        a_st = np.asarray(batch["a_st"], dtype=np.float64)
+        slack = np.einsum("tkmd,tkd->tkm", np.asarray(batch["C"], dtype=np.float64), a_st) \
+            - np.asarray(batch["c"], dtype=np.float64)
+        violated = (np.asarray(batch["row_mask"], dtype=bool) & (slack < -1e-6)).any(-1)
+        corr = np.linalg.norm(np.asarray(batch["a_exec"], dtype=np.float64) - a_st, axis=-1)
+        return {
+            "proposal_violation_rate": float(violated.mean()),
+            "correction_mean": float(corr.mean()),
+            "reward_mean": float(np.mean(batch["reward"])),
+            "return_mean": float(ret.mean()),
+            "adv_std": float(adv.std()),
+        }
+
+    # ------------------------------------------------------------------ policy pieces
+
+    def _log_std(self) -> Tensor:
+        return torch.cat([t.log_std for t in self.trees])
+
+    def _tree_actions(self, mb: Minibatch, tau: float, grad_carriers) -> Tensor:
+        """Stacked ST nominal actions a_ST [B, D]; carriers outside
+        ``grad_carriers`` are computed without a graph (detached partners)."""
+        blocks = []
+        for i, tree in enumerate(self.trees):
+            if i in grad_carriers:
+                blocks.append(tree(mb.obs[:, i], tau).action)
+            else:
+                with torch.no_grad():
+                    blocks.append(tree(mb.obs[:, i], tau).action)
+        return torch.cat(blocks, dim=-1)
+
+    def _center(self, mb: Minibatch, a_st: Tensor, kappa: float,
+                x_star: Tensor | None = None) -> Tensor:
+        """Proposal center: SAIL map Pi_kappa(x, a_ST) (Eq. sail_projection) or identity.
+        Human blocks sit at their measured action (= stored a_prop there)."""
+        if not self.uses_sail:
+            return torch.where(mb.fixed, mb.a_prop.to(a_st.dtype), a_st)
+        if self.cfg.sail_grad == "unrolled":
+            return sail_project(a_st.double(), mb.C, mb.c, mb.row_mask, kappa,
+                                fixed_mask=mb.fixed, fixed_action=mb.a_prop, config=self.sail_config)
+        return sail_center_implicit(a_st, mb.C, mb.c, mb.row_mask, kappa, mb.fixed, mb.a_prop,
+                                    self.sail_config, x_star=x_star)
+
+    def _log_ratio(self, mb: Minibatch, center: Tensor, log_std: Tensor) -> Tensor:
+        """Per-carrier log-likelihood ratio at the stored a_prop [B, N]; 0 on human blocks."""
+        logp = proposal_log_prob(center, log_std, mb.a_prop)
+        return torch.where(mb.active, logp - mb.logp_old, torch.zeros_like(logp))
+
+    def _clipped(self, ratio: Tensor, adv: Tensor) -> Tensor:
+        """l(rho, A) = min(rho A, clip(rho, 1-eps, 1+eps) A) (Eq. ppo_surrogates)."""
+        eps = self.cfg.clip
+        return torch.minimum(ratio * adv, ratio.clamp(1 - eps, 1 + eps) * adv)
+
+    def _surrogates(self, mb: Minibatch, log_ratio: Tensor) -> tuple[list[Tensor], Tensor]:
+        """Eq. (ppo_surrogates): L_i and L_team (team ratio = product over robot carriers)."""
+        adv = mb.adv[:, None]
+        per = self._clipped(log_ratio.exp(), adv) * mb.active
+        L_ind = list(per.mean(0).unbind(0))
+        L_team = self._clipped(log_ratio.sum(1).exp(), mb.adv).mean()
+        return L_ind, L_team
+
+    def _ratio_stats(self, log_ratio: Tensor, active: Tensor) -> dict[str, float]:
+        with torch.no_grad():
+            n = active.sum().clamp(min=1)
+            ratio = log_ratio.exp()
+            kl = ((ratio - 1) - log_ratio)[active].sum() / n
+            clipped = ((ratio - 1).abs() > self.cfg.clip)[active].sum() / n
+        return {"approx_kl": float(kl), "clip_frac": float(clipped)}
+
+    def _entropy(self) -> Tensor:
+        return proposal_entropy(self._log_std())   # [N]
+
+    # ------------------------------------------------------------------ actor updates
+
+    def _talo_step(self, mb: Minibatch, tau: float, kappa: float) -> dict[str, float]:
+        """Joint actor step along g_TALO (Eqs. talo_gap .. talo_projection)."""
+        a_st = self._tree_actions(mb, tau, range(self.n_agents))
+        log_ratio = self._log_ratio(mb, self._center(mb, a_st, kappa), self._log_std())
+        L_ind, L_team = self._surrogates(mb, log_ratio)
+        # identity center: L_i depends on theta_i only -> one backward for g_ind
+        res = talo_direction(L_ind, L_team, self.groups, self.cfg.talo_sigma,
+                             self.cfg.talo_eps, separable=not self.uses_sail)
+        entropy = self._entropy()
+        direction = res.g_talo + self.cfg.ent_coef * flat_grad(entropy.sum(), self.actor_params)
+        for p, g in zip(self.actor_params, unflatten_like(direction, self.actor_params)):
+            p.grad = -g.detach().clone()      # ascent on surrogates -> descent for Adam
+        grad_norm = nn.utils.clip_grad_norm_(self.actor_params, self.cfg.max_grad_norm)
+        for opt in self.actor_opts:
+            opt.step()
+        stats = self._ratio_stats(log_ratio, mb.active)
+        stats.update(
+            policy_loss=-float(sum(L_ind).detach()), team_loss=-float(L_team.detach()),
+            entropy=float(entropy.detach().mean()),
+            w_gap=res.w_gap, cos_ind_team=res.cos_ind_team, delta_gap=res.delta_gap,
+            talo_corrected=float(res.corrected), actor_grad_norm=float(grad_norm),
+        )
+        return stats
+
+    def _happo_step(self, mb: Minibatch, tau: float, kappa: float) -> dict[str, float]:
+        """HAPPO sequential per-carrier clipped updates with the M factor."""
+        order = torch.randperm(self.n_agents, generator=self.gen).tolist()
+        factor = torch.ones_like(mb.adv)
+        with torch.no_grad():
+            a_st_cache = self._tree_actions(mb, tau, ())
+            center_cache = self._center(mb, a_st_cache, kappa)   # forward at current params
+        self.last_happo_factors = {}
+        losses, kls, clips, ents, norms = [], [], [], [], []
+        for i in order:
+            self.last_happo_factors[i] = factor.clone()
+            tree = self.trees[i]
+            block = slice(ACT_DIM * i, ACT_DIM * (i + 1))
+            own = tree(mb.obs[:, i], tau).action
+            a_st = torch.cat([a_st_cache[:, :block.start], own, a_st_cache[:, block.stop:]], dim=-1)
+            log_std = torch.cat([t.log_std if j == i else t.log_std.detach()
+                                 for j, t in enumerate(self.trees)])
+            # same values as the cached forward: reuse its SAIL solution, build the graph only
+            center = self._center(mb, a_st, kappa, x_star=center_cache)
+            log_ratio = self._log_ratio(mb, center, log_std)[:, i]
+            active = mb.active[:, i]
+            surr = self._clipped(log_ratio.exp(), mb.adv * factor) * active
+            entropy = proposal_entropy(log_std)[i]
+            loss = -(surr.mean() + self.cfg.ent_coef * entropy)
+            self.actor_opts[i].zero_grad(set_to_none=True)
+            loss.backward()
+            norms.append(float(nn.utils.clip_grad_norm_(self.groups[i], self.cfg.max_grad_norm)))
+            self.actor_opts[i].step()
+            stats = self._ratio_stats(log_ratio[:, None], active[:, None])
+            losses.append(float(loss.detach())); ents.append(float(entropy.detach()))
+            kls.append(stats["approx_kl"]); clips.append(stats["clip_frac"])
+            # M <- M * rho_i(theta_i new)  (HARL: ratio of the updated carrier, detached)
+            with torch.no_grad():
+                a_st_cache[:, block] = tree(mb.obs[:, i], tau).action
+                center_cache = self._center(mb, a_st_cache, kappa)
+                new = self._log_ratio(mb, center_cache, self._log_std())[:, i]
+                factor = factor * torch.where(active, new.exp(), torch.ones_like(new))
+        return {"policy_loss": float(np.sum(losses)), "approx_kl": float(np.mean(kls)),
+                "clip_frac": float(np.mean(clips)), "entropy": float(np.mean(ents)),
+                "actor_grad_norm": float(np.mean(norms)),
+                "happo_factor_std": float(factor.std()) if factor.numel() > 1 else 0.0}
+
+    def _first_minibatch_diagnostics(self, mb: Minibatch, tau: float, kappa: float) -> dict[str, float]:
+        """Before any step of this update: how far the learner's recomputed center is
+        from the actors' stored one (0 when on-policy and both sides agree), and
+        W_gap / cos(g_ind, g_team) for the sequential methods (no HVP needed)."""
+        a_st = self._tree_actions(mb, tau, range(self.n_agents))
+        center = self._center(mb, a_st, kappa)
+        log_ratio = self._log_ratio(mb, center, self._log_std())
+        out = {"logratio_at_start":
+               float(log_ratio.detach()[mb.active].abs().mean()) if mb.active.any() else 0.0}
+        if not self.uses_talo:
+            L_ind, L_team = self._surrogates(mb, log_ratio)
+            g_ind, g_team, w, _ = talo_gap(L_ind, L_team, self.groups, with_hvp=False)
+            out.update(w_gap=float(w), cos_ind_team=cosine(g_ind, g_team))
+        return out
+
+    # ------------------------------------------------------------------ critic
+
+    def _critic_step(self, mb: Minibatch) -> dict[str, float]:
+        v = self.critic(mb.obs, mb.state if self.critic.state_dim else None)
+        loss = self.cfg.vf_coef * (v - mb.ret).pow(2).mean()
+        self.critic_opt.zero_grad(set_to_none=True)
+        loss.backward()
+        nn.utils.clip_grad_norm_(self.critic.parameters(), self.cfg.max_grad_norm)
+        self.critic_opt.step()
+        return {"value_loss": float(loss.detach())}
+
+    # ------------------------------------------------------------------ checkpoints
+
+    def state_dict(self) -> dict:
+        """Weights-only-safe (tensors, numbers, strings, lists, dicts)."""
+        return {
+            "format_version": STATE_FORMAT_VERSION,
+            "method": self.name,
+            "config": json.dumps(self.cfg.to_dict(), sort_keys=True),
+            "obs_dim": self.obs_dim,
+            "state_dim": self.state_dim,
+            "policy": self.policy.state_dict(),
+            "critic": self.critic.state_dict(),
+            "value_norm": self.value_norm.state_dict(),
+            "actor_opts": [o.state_dict() for o in self.actor_opts],
+            "critic_opt": self.critic_opt.state_dict(),
+            "updates": self.updates,
+            "rng": self.gen.get_state(),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        if state.get("format_version") != STATE_FORMAT_VERSION:
+            raise ValueError(f"unsupported learner state format {state.get('format_version')!r}")
+        if state.get("method") != self.name:
+            raise ValueError(f"checkpoint is for method {state.get('method')!r}, not {self.name!r}")
+        if (state.get("obs_dim"), state.get("state_dim")) != (self.obs_dim, self.state_dim):
+            raise ValueError("checkpoint obs_dim/state_dim do not match this learner")
+        self.policy.load_state_dict(state["policy"])
+        self.critic.load_state_dict(state["critic"])
+        self.value_norm.load_state_dict(state["value_norm"])
+        if len(state["actor_opts"]) != len(self.actor_opts):
+            raise ValueError("checkpoint has a different number of actor optimizers")
+        for opt, s in zip(self.actor_opts, state["actor_opts"]):
+            opt.load_state_dict(s)
+        self.critic_opt.load_state_dict(state["critic_opt"])
+        self.updates = int(state["updates"])
+        self.gen.set_state(state["rng"])
+
+
+def sail_center_implicit(a_st: Tensor, C: Tensor, c: Tensor, mask: Tensor, kappa: float,
+                         fixed: Tensor, human: Tensor, config: SailConfig,
+                         x_star: Tensor | None = None) -> Tensor:
+    """SAIL center (Eq. sail_projection) with implicit-function gradients.
+
+    Forward: the actors' own numpy solver (common.sail.sail_project_np, same
+    config), so the learner's center equals the one the behaviour log-probs
+    were computed with. Graph: one Newton step taken from that (constant)
+    solution x*,
+
+        x = x* - H^{-1} [(x* - a_ST) - kappa C_J^T r_J(x*)],  H = I + kappa C_J^T C_J,
+
+    whose value is x* (the gradient vanishes there) and whose Jacobian in
+    a_ST is (I + kappa C_J^T C_J)^{-1}, Eq. (sail_jacobian) of the ideal
+    minimizer. It equals the unrolled map's Jacobian once its last full
+    Newton step keeps the active set (see common/sail.py), at the cost of one
+    batched 9x9 solve instead of differentiating every unrolled step.
+    ``x_star`` may pass a forward solution already computed for these values.
+    """
+    a64 = a_st.double()
+    if x_star is None:
+        x_star = torch.as_tensor(sail_project_np(
+            a64.detach().cpu().numpy(), C.cpu().numpy(), c.cpu().numpy(), mask.cpu().numpy(), kappa,
+            n_newton=config.n_newton, damping=config.damping,
+            fixed_mask=fixed.cpu().numpy(), fixed_action=human.cpu().numpy(), config=config,
+        ), dtype=torch.float64, device=a_st.device)
+    x_star = x_star.detach().double()
+    a = torch.where(fixed, human.double(), a64)
+    Cf, cf = absorb_fixed(C.double(), c.double(), fixed, human.double())
+    Cn, cn, keep = normalize_rows(Cf, cf, mask, config.row_tol)
+    r = cn - torch.einsum("bmd,bd->bm", Cn, x_star)
+    act = ((r > 0) & keep).double()
+    Ca = Cn * act[..., None]
+    H = torch.eye(a.shape[1], dtype=torch.float64) + kappa * torch.einsum("bmd,bme->bde", Ca, Ca)
+    grad = (x_star - a) - kappa * torch.einsum("bm,bmd->bd", r * act, Cn)
+    return x_star - torch.linalg.solve(H, grad[..., None])[..., 0]
+
+
+def make_method(name: str, cfg: AlgoConfig | None, obs_dim: int, state_dim: int) -> Method:
+    """Factory named in docs/interfaces.md."""
+    return Method(name, cfg or AlgoConfig(), obs_dim, state_dim)
