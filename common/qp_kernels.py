@@ -66,11 +66,11 @@ def _gi_drop(l, q, n, R, JT, u, act, in_act):
 
 
 @njit(cache=True)
-def _gi_solve(y0, N, b, norms, mg, bvar, bsign, m, n, tol, dep_tol, max_iter,
-              y, JT, R, u, act, in_act, dvec, z, r):
+def _gi_solve(y0, NT, b, norms, mg, bvar, bsign, m, n, tol, dep_tol, max_iter,
+              y, JT, R, u, act, in_act, dvec, z, r, sres):
     """Goldfarb–Idnani dual active set for min ½‖y − y0‖² s.t. rows(y) ≥ b[:m].
 
-    Rows 0..mg−1 are dense (N[i, :n]); rows mg..m−1 are bounds bsign[i]·y[bvar[i]]
+    Rows 0..mg−1 are dense (NT[:n, i], stored transposed); rows mg..m−1 are bounds bsign[i]·y[bvar[i]]
     (the action box and slack signs), which cost O(1) to evaluate.
     Starts at the unconstrained minimizer y0 (dual feasible) and repeatedly
     adds the most violated row (normalized by its norm); a row that no primal
@@ -89,15 +89,19 @@ def _gi_solve(y0, N, b, norms, mg, bvar, bsign, m, n, tol, dep_tol, max_iter,
         # Step 1: most violated row (violation measured in row-normalized units).
         p = -1
         worst = 0.0
-        # (Manually inlined row products: a helper call per row costs array
-        # refcounting that dominated the runtime.)
+        # Residuals of all dense rows at once: NT is stored column-major (NT[k, i]) so
+        # the inner loop runs over independent rows and vectorizes.
+        for i in range(mg):
+            sres[i] = -b[i]
+        for k in range(n):
+            yk = y[k]
+            for i in range(mg):
+                sres[i] += NT[k, i] * yk
         for i in range(m):
             if in_act[i]:
                 continue
             if i < mg:
-                si = -b[i]
-                for k in range(n):
-                    si += N[i, k] * y[k]
+                si = sres[i]
             else:
                 si = bsign[i] * y[bvar[i]] - b[i]
             if si < -tol * max(norms[i], 1.0):
@@ -120,7 +124,7 @@ def _gi_solve(y0, N, b, norms, mg, bvar, bsign, m, n, tol, dep_tol, max_iter,
                 for j in range(n):
                     acc = 0.0
                     for k in range(n):
-                        acc += JT[j, k] * N[p, k]
+                        acc += JT[j, k] * NT[k, p]
                     dvec[j] = acc
             zn2 = 0.0
             for k in range(n):
@@ -151,8 +155,8 @@ def _gi_solve(y0, N, b, norms, mg, bvar, bsign, m, n, tol, dep_tol, max_iter,
                     sp = -b[p]
                     zn = 0.0
                     for k in range(n):
-                        sp += N[p, k] * y[k]
-                        zn += N[p, k] * z[k]
+                        sp += NT[k, p] * y[k]
+                        zn += NT[k, p] * z[k]
                 else:
                     sp = bsign[p] * y[bvar[p]] - b[p]
                     zn = bsign[p] * z[bvar[p]]
@@ -210,7 +214,8 @@ def solve_batch_active_set(a, C, c, row_mask, fixed, lo, hi, tol, dep_tol, zero_
     B, M, d = C.shape
     nl = d + M
     ml = 2 * M + 2 * d
-    N = np.zeros((M, nl))
+    NT = np.zeros((nl, M))  # dense rows, transposed
+    sres = np.zeros(M)
     bvec = np.zeros(ml)
     norms = np.ones(ml)
     bvar = np.zeros(ml, dtype=np.int64)
@@ -249,7 +254,7 @@ def solve_batch_active_set(a, C, c, row_mask, fixed, lo, hi, tol, dep_tol, zero_
             nrm2 = 0.0
             for kk in range(nf):
                 v = C[bi, i, free[kk]]
-                N[mr, kk] = v
+                NT[kk, mr] = v
                 nrm2 += v * v
             nrm = math.sqrt(nrm2)
             if nrm <= zero_tol:
@@ -280,18 +285,18 @@ def solve_batch_active_set(a, C, c, row_mask, fixed, lo, hi, tol, dep_tol, zero_
                 bvec[m + 1] = -hi[bi, free[kk]]
                 norms[m + 1] = 1.0
                 m += 2
-            code, it, q = _gi_solve(y0, N, bvec, norms, mr, bvar, bsign, m, nf, tol, dep_tol,
-                                    max_iter, y, JT, R, u, act, in_act, dvec, z, r)
+            code, it, q = _gi_solve(y0, NT, bvec, norms, mr, bvar, bsign, m, nf, tol, dep_tol,
+                                    max_iter, y, JT, R, u, act, in_act, dvec, z, r, sres)
         if code == _GI_INFEASIBLE:
             # Lifted slack QP over y = (x_free, σ): rows [C_i, e_i/√ρ] y ≥ c_i, σ ≥ 0, box.
             n2 = nf + mr
             for ii in range(mr):
                 nrm2 = 0.0
                 for kk in range(nf):
-                    nrm2 += N[ii, kk] * N[ii, kk]
+                    nrm2 += NT[kk, ii] * NT[kk, ii]
                 for j in range(nf, n2):
-                    N[ii, j] = 0.0
-                N[ii, nf + ii] = inv_sqrt_rho
+                    NT[j, ii] = 0.0
+                NT[nf + ii, ii] = inv_sqrt_rho
                 bvec[ii] = cp[ii]
                 norms[ii] = math.sqrt(nrm2 + inv_sqrt_rho * inv_sqrt_rho)
                 y0[nf + ii] = 0.0
@@ -312,8 +317,8 @@ def solve_batch_active_set(a, C, c, row_mask, fixed, lo, hi, tol, dep_tol, zero_
                 bvec[m + 1] = -hi[bi, free[kk]]
                 norms[m + 1] = 1.0
                 m += 2
-            code2, it2, q = _gi_solve(y0, N, bvec, norms, mr, bvar, bsign, m, n2, tol, dep_tol,
-                                      max_iter, y, JT, R, u, act, in_act, dvec, z, r)
+            code2, it2, q = _gi_solve(y0, NT, bvec, norms, mr, bvar, bsign, m, n2, tol, dep_tol,
+                                      max_iter, y, JT, R, u, act, in_act, dvec, z, r, sres)
             it += it2
             status[bi] = STATUS_INFEASIBLE if code2 == _GI_OK else STATUS_MAX_ITER
         elif code == _GI_OK:
@@ -325,6 +330,57 @@ def solve_batch_active_set(a, C, c, row_mask, fixed, lo, hi, tol, dep_tol, zero_
             k = free[kk]
             # The box is always respected: clip the last ulp-level excursions.
             x_out[bi, k] = min(max(y[kk], lo[bi, k]), hi[bi, k])
+
+
+@njit(cache=True)
+def _ls_householder(A, idx, p, n, g, W, rhs, zout):
+    """Least squares min ‖Σ_j z_j A[idx[j]] − g‖ by Householder QR (p ≤ n columns).
+
+    Returns the smallest |diagonal| of the triangular factor (0 when rank deficient).
+    """
+    for j in range(p):
+        for i in range(n):
+            W[i, j] = A[idx[j], i]
+    for i in range(n):
+        rhs[i] = g[i]
+    for j in range(p):
+        nx = 0.0
+        for i in range(j, n):
+            nx += W[i, j] * W[i, j]
+        nx = math.sqrt(nx)
+        if nx == 0.0:
+            continue
+        alpha = -nx if W[j, j] >= 0.0 else nx
+        v0 = W[j, j] - alpha
+        vn2 = v0 * v0
+        for i in range(j + 1, n):
+            vn2 += W[i, j] * W[i, j]
+        if vn2 > 0.0:
+            # Apply H = I − 2 v vᵀ / vᵀv (v = [v0, W[j+1:, j]]) to the trailing columns and rhs.
+            for col in range(j + 1, p):
+                s = v0 * W[j, col]
+                for i in range(j + 1, n):
+                    s += W[i, j] * W[i, col]
+                f = 2.0 * s / vn2
+                W[j, col] -= f * v0
+                for i in range(j + 1, n):
+                    W[i, col] -= f * W[i, j]
+            s = v0 * rhs[j]
+            for i in range(j + 1, n):
+                s += W[i, j] * rhs[i]
+            f = 2.0 * s / vn2
+            rhs[j] -= f * v0
+            for i in range(j + 1, n):
+                rhs[i] -= f * W[i, j]
+        W[j, j] = alpha
+    dmin = np.inf
+    for j in range(p - 1, -1, -1):
+        acc = rhs[j]
+        for l in range(j + 1, p):
+            acc -= W[j, l] * zout[l]
+        zout[j] = acc / W[j, j] if abs(W[j, j]) > 1e-300 else 0.0
+        dmin = min(dmin, abs(W[j, j]))
+    return dmin
 
 
 @njit(cache=True)
@@ -342,6 +398,24 @@ def nnls(A, k, n, g, lam, inP, idx, W, rhs, zls, resid):
         resid[i] = g[i]
         gn += g[i] * g[i]
     wtol = 1e-14 * (1.0 + math.sqrt(gn))
+    # Fast path: if the plain least-squares weights on all generators are
+    # well-determined and positive, they are the NNLS solution.
+    if 0 < k <= n:
+        for j in range(k):
+            idx[j] = j
+        dmin = _ls_householder(A, idx, k, n, g, W, rhs, zls)
+        ok = dmin > 1e-6
+        for j in range(k):
+            ok = ok and zls[j] > 0.0
+        if ok:
+            rmax = 0.0
+            for i in range(n):
+                acc = g[i]
+                for j in range(k):
+                    lam[j] = zls[j]
+                    acc -= zls[j] * A[j, i]
+                rmax = max(rmax, abs(acc))
+            return rmax
     p = 0
     for _outer in range(3 * k + 5):
         best = -1
@@ -363,48 +437,7 @@ def nnls(A, k, n, g, lam, inP, idx, W, rhs, zls, resid):
         idx[p] = best
         p += 1
         for _inner in range(3 * k + 5):
-            # Least squares z = argmin ‖Σ_jj z_jj A[idx[jj]] − g‖ by Householder QR
-            # (inlined: a helper call per pass costs more than the arithmetic).
-            for jj in range(p):
-                for i in range(n):
-                    W[i, jj] = A[idx[jj], i]
-            for i in range(n):
-                rhs[i] = g[i]
-            for jj in range(p):
-                nx = 0.0
-                for i in range(jj, n):
-                    nx += W[i, jj] * W[i, jj]
-                nx = math.sqrt(nx)
-                if nx == 0.0:
-                    continue
-                hh = -nx if W[jj, jj] >= 0.0 else nx
-                v0 = W[jj, jj] - hh
-                vn2 = v0 * v0
-                for i in range(jj + 1, n):
-                    vn2 += W[i, jj] * W[i, jj]
-                if vn2 > 0.0:
-                    # Apply H = I − 2 v vᵀ / vᵀv, v = [v0, W[jj+1:, jj]], to trailing columns and rhs.
-                    for col in range(jj + 1, p):
-                        sacc = v0 * W[jj, col]
-                        for i in range(jj + 1, n):
-                            sacc += W[i, jj] * W[i, col]
-                        f = 2.0 * sacc / vn2
-                        W[jj, col] -= f * v0
-                        for i in range(jj + 1, n):
-                            W[i, col] -= f * W[i, jj]
-                    sacc = v0 * rhs[jj]
-                    for i in range(jj + 1, n):
-                        sacc += W[i, jj] * rhs[i]
-                    f = 2.0 * sacc / vn2
-                    rhs[jj] -= f * v0
-                    for i in range(jj + 1, n):
-                        rhs[i] -= f * W[i, jj]
-                W[jj, jj] = hh
-            for jj in range(p - 1, -1, -1):
-                acc = rhs[jj]
-                for l in range(jj + 1, p):
-                    acc -= W[jj, l] * zls[l]
-                zls[jj] = acc / W[jj, jj] if abs(W[jj, jj]) > 1e-300 else 0.0
+            _ls_householder(A, idx, p, n, g, W, rhs, zls)
             alpha = np.inf
             for jj in range(p):
                 if zls[jj] <= 0.0:
