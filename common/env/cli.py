@@ -16,10 +16,20 @@ def _render(args):
     print(f"wrote {args.out}")
 
 
-def bench_env(scenario: str = "maze", num_envs: int = 16, steps: int = 100, seed: int = 0) -> dict:
+def bench_env(scenario: str = "maze", num_envs: int = 16, steps: int = 100, seed: int = 0,
+              repeats: int = 5) -> dict:
     """Control steps/s of BatchEnv (random actions, obs and safety rows included) vs the raw
-    physics bound: the same model stepped the same number of physics steps by mujoco.rollout
-    (one thread, from the env's own states and tracker targets)."""
+    physics bound, ``ratio = env / raw`` (median over ``repeats`` rounds; the machine is shared,
+    so absolute rates are noisy and the ratio of two back-to-back measurements is the figure).
+
+    Each round times ``steps`` env control steps, then replays exactly those physics steps in C
+    with ``mujoco.rollout`` on the same model: the K envs' states (and solver warm starts) at the
+    start of the round, the tracker targets the env applied at each control step held for its
+    ``substeps`` physics steps, one thread, output buffer preallocated. Episode resets inside the
+    round are env work and are not replayed. A warm-up step before timing loads the numba kernels.
+    """
+    import statistics
+
     import mujoco
     import mujoco.rollout
     import numpy as np
@@ -27,31 +37,42 @@ def bench_env(scenario: str = "maze", num_envs: int = 16, steps: int = 100, seed
     from common.env.batch_env import BatchEnv
     from common.env.config import EnvConfig
 
+    if num_envs < 1 or steps < 1 or repeats < 1:
+        raise ValueError("num_envs, steps and repeats must be >= 1")
     env = BatchEnv(EnvConfig(scenario), num_envs=num_envs, seed=seed)
     env.reset()
     rng = np.random.default_rng(seed)
-    acts = rng.uniform(-1.0, 1.0, (steps, num_envs, 9))
-    env.step(acts[0])  # warm-up
-    t0 = time.perf_counter()
-    for t in range(steps):
-        env.step(acts[t])
-    t_env = time.perf_counter() - t0
-    m = env.phys.model
+    env.step(rng.uniform(-1.0, 1.0, (num_envs, 9)))  # warm-up (numba kernels, caches)
+    m, n_sub = env.phys.model, env.cfg.substeps
     spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-    state = np.zeros((num_envs, mujoco.mj_stateSize(m, spec)))
-    for k, d in enumerate(env.phys.datas):
-        mujoco.mj_getState(m, d, state[k], spec)
-    nphys = steps * env.cfg.substeps
-    ctrl = np.repeat(env.phys._ctrl[:, None, :], nphys, axis=1)
+    state0 = np.zeros((num_envs, mujoco.mj_stateSize(m, spec)))
+    warm0 = np.zeros((num_envs, m.nv))
+    ctrls = np.zeros((num_envs, steps, m.nu))
+    out_state = np.zeros((num_envs, steps * n_sub, state0.shape[1]))
     data = mujoco.MjData(m)
-    mujoco.rollout.rollout(m, data, state, ctrl[:, :1])  # warm-up
-    t0 = time.perf_counter()
-    mujoco.rollout.rollout(m, data, state, ctrl)
-    t_raw = time.perf_counter() - t0
-    env_sps = steps * num_envs / t_env
-    raw_sps = steps * num_envs / t_raw
-    return {"scenario": scenario, "num_envs": num_envs, "control_steps": steps, "substeps": env.cfg.substeps,
-            "env_steps_per_s": env_sps, "raw_physics_env_steps_per_s": raw_sps, "ratio": env_sps / raw_sps}
+    rounds = []
+    for _ in range(repeats):
+        acts = rng.uniform(-1.0, 1.0, (steps, num_envs, 9))
+        for k, d in enumerate(env.phys.datas):
+            mujoco.mj_getState(m, d, state0[k], spec)
+            warm0[k] = d.qacc_warmstart
+        t0 = time.perf_counter()
+        for t in range(steps):
+            env.step(acts[t])
+            ctrls[:, t] = env.phys._ctrl  # the targets applied during this control step
+        t_env = time.perf_counter() - t0
+        control = np.repeat(ctrls, n_sub, axis=1)
+        t0 = time.perf_counter()
+        mujoco.rollout.rollout(m, data, state0, control, initial_warmstart=warm0, state=out_state)
+        t_raw = time.perf_counter() - t0
+        rounds.append((steps * num_envs / t_env, steps * num_envs / t_raw))
+    env_sps = statistics.median(r[0] for r in rounds)
+    raw_sps = statistics.median(r[1] for r in rounds)
+    ratio = statistics.median(r[0] / r[1] for r in rounds)
+    return {"scenario": scenario, "num_envs": num_envs, "control_steps": steps, "substeps": n_sub,
+            "physics_steps_per_env": steps * n_sub, "repeats": repeats,
+            "env_steps_per_s": env_sps, "raw_physics_env_steps_per_s": raw_sps, "ratio": ratio,
+            "ratios": [r[0] / r[1] for r in rounds]}
 
 
 def bench_scripted(episodes: int = 20, scenarios=None, seed: int = 0, num_envs: int = 10) -> dict:
@@ -76,7 +97,7 @@ def bench_scripted(episodes: int = 20, scenarios=None, seed: int = 0, num_envs: 
 
 
 def _bench_env(args):
-    res = bench_env(args.scenario, args.num_envs, args.steps, args.seed)
+    res = bench_env(args.scenario, args.num_envs, args.steps, args.seed, args.repeats)
     if args.scripted:
         res["scripted"] = bench_scripted(args.episodes, seed=args.seed)
     print(json.dumps(res, indent=None if args.json else 2))
@@ -105,6 +126,7 @@ def register(commands, bench):
     b.add_argument("--num-envs", type=int, default=16)
     b.add_argument("--steps", type=int, default=100)
     b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--repeats", type=int, default=5, help="timed rounds; medians are reported")
     b.add_argument("--scripted", action="store_true", help="also report scripted success rates")
     b.add_argument("--episodes", type=int, default=20)
     b.set_defaults(func=_bench_env)

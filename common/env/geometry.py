@@ -36,7 +36,7 @@ class WallSet:
             raise ValueError("a scenario needs at least one wall")
         if np.any(walls[:, 2:4] <= 0):
             raise ValueError("wall half-sizes must be positive")
-        self.walls = walls
+        self.walls = np.ascontiguousarray(walls)
         self.center = walls[:, :2]
         self.half = walls[:, 2:4]
         self.cos = np.cos(walls[:, 4])
@@ -47,18 +47,51 @@ class WallSet:
         return np.stack([self.cos * d[..., 0] + self.sin * d[..., 1],
                          -self.sin * d[..., 0] + self.cos * d[..., 1]], -1)
 
+    # The public queries run numba kernels (common/env/kernels.py) on the flattened points;
+    # the *_reference methods are the same computations in numpy (tests compare the two).
+    def _flat(self, pts):
+        pts = np.asarray(pts, dtype=np.float64)
+        return np.ascontiguousarray(pts.reshape(-1, 2)), pts.shape[:-1]
+
     def signed_distance(self, pts):
         """Signed distance [...,W] of points [...,2] to each box (negative inside)."""
+        from common.env.kernels import signed_distances
+
+        flat, lead = self._flat(pts)
+        out = np.empty((len(flat), len(self.walls)))
+        signed_distances(flat, self.walls, self.cos, self.sin, out)
+        return out.reshape(lead + (len(self.walls),))
+
+    def nearest(self, pts):
+        """(distance [...], vector [...,2] from each point to the nearest wall point)."""
+        from common.env.kernels import nearest_walls
+
+        flat, lead = self._flat(pts)
+        dist, vec = np.empty(len(flat)), np.empty((len(flat), 2))
+        nearest_walls(flat, self.walls, self.cos, self.sin, dist, vec)
+        return dist.reshape(lead), vec.reshape(lead + (2,))
+
+    def ray_distance(self, origin, direction, max_dist: float):
+        """Distance along unit rays origin/direction [...,2] to the first box (slab test), capped."""
+        from common.env.kernels import ray_distances
+
+        origin, direction = np.broadcast_arrays(np.asarray(origin, np.float64), np.asarray(direction, np.float64))
+        flat_o, lead = self._flat(origin)
+        flat_d, _ = self._flat(direction)
+        out = np.empty(len(flat_o))
+        ray_distances(flat_o, flat_d, self.walls, self.cos, self.sin, float(max_dist), out)
+        return out.reshape(lead)
+
+    def signed_distance_reference(self, pts):
         q = np.abs(self._local(pts)) - self.half
         outside = np.linalg.norm(np.maximum(q, 0.0), axis=-1)
         inside = np.minimum(np.max(q, axis=-1), 0.0)
         return outside + inside
 
-    def nearest(self, pts):
-        """(distance [...], vector [...,2] from each point to the nearest wall point)."""
+    def nearest_reference(self, pts):
         loc = self._local(pts)
         clamped = np.clip(loc, -self.half, self.half)
-        d = self.signed_distance(pts)
+        d = self.signed_distance_reference(pts)
         k = np.argmin(d, axis=-1)
         delta_loc = np.take_along_axis(clamped - loc, k[..., None, None], axis=-2)[..., 0, :]
         c, s = self.cos[k], self.sin[k]
@@ -66,8 +99,7 @@ class WallSet:
                         s * delta_loc[..., 0] + c * delta_loc[..., 1]], -1)
         return np.take_along_axis(d, k[..., None], axis=-1)[..., 0], vec
 
-    def ray_distance(self, origin, direction, max_dist: float):
-        """Distance along unit rays origin/direction [...,2] to the first box (slab test), capped."""
+    def ray_distance_reference(self, origin, direction, max_dist: float):
         lo = self._local(origin)
         dl = np.stack([self.cos * direction[..., None, 0] + self.sin * direction[..., None, 1],
                        -self.sin * direction[..., None, 0] + self.cos * direction[..., None, 1]], -1)

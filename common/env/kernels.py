@@ -28,83 +28,68 @@ def _box_local(px, py, wall, c, s):
     return c * dx + s * dy, -s * dx + c * dy
 
 
+@njit(cache=True, inline="always")
+def _box_sd(lx, ly, hx, hy):
+    """Signed distance of a local point to the box ``[-hx, hx] x [-hy, hy]``."""
+    qx = abs(lx) - hx
+    qy = abs(ly) - hy
+    ox = max(qx, 0.0)
+    oy = max(qy, 0.0)
+    return math.sqrt(ox * ox + oy * oy) + min(max(qx, qy), 0.0)
+
+
+@njit(cache=True)
+def signed_distances(pts, walls, cos, sin, out):
+    """``WallSet.signed_distance`` for points ``[N,2]`` into ``out [N,W]``."""
+    for p in range(pts.shape[0]):
+        for w in range(walls.shape[0]):
+            lx, ly = _box_local(pts[p, 0], pts[p, 1], walls[w], cos[w], sin[w])
+            out[p, w] = _box_sd(lx, ly, walls[w, 2], walls[w, 3])
+
+
 @njit(cache=True)
 def nearest_walls(pts, walls, cos, sin, dist, vec):
-    """``WallSet.nearest`` for points ``[K,P,2]``: fills ``dist [K,P]`` and ``vec [K,P,2]``."""
-    K, P = pts.shape[0], pts.shape[1]
-    W = walls.shape[0]
-    for k in range(K):
-        for p in range(P):
-            best = np.inf
-            bdx = 0.0
-            bdy = 0.0
-            bw = 0
-            for w in range(W):
-                lx, ly = _box_local(pts[k, p, 0], pts[k, p, 1], walls[w], cos[w], sin[w])
-                qx = abs(lx) - walls[w, 2]
-                qy = abs(ly) - walls[w, 3]
-                ox = max(qx, 0.0)
-                oy = max(qy, 0.0)
-                d = math.sqrt(ox * ox + oy * oy) + min(max(qx, qy), 0.0)
-                if d < best:
-                    best = d
-                    bw = w
-                    bdx = min(max(lx, -walls[w, 2]), walls[w, 2]) - lx
-                    bdy = min(max(ly, -walls[w, 3]), walls[w, 3]) - ly
-            dist[k, p] = best
-            vec[k, p, 0] = cos[bw] * bdx - sin[bw] * bdy
-            vec[k, p, 1] = sin[bw] * bdx + cos[bw] * bdy
-
-
-@njit(cache=True)
-def min_signed_distance(pts, walls, cos, sin, out):
-    """``WallSet.signed_distance(pts).min(axis=(-1, -2))`` for points ``[K,P,2]`` into ``out [K]``."""
-    K, P = pts.shape[0], pts.shape[1]
-    for k in range(K):
+    """``WallSet.nearest`` for points ``[N,2]``: fills ``dist [N]`` and ``vec [N,2]``."""
+    for p in range(pts.shape[0]):
         best = np.inf
-        for p in range(P):
-            for w in range(walls.shape[0]):
-                lx, ly = _box_local(pts[k, p, 0], pts[k, p, 1], walls[w], cos[w], sin[w])
-                qx = abs(lx) - walls[w, 2]
-                qy = abs(ly) - walls[w, 3]
-                ox = max(qx, 0.0)
-                oy = max(qy, 0.0)
-                d = math.sqrt(ox * ox + oy * oy) + min(max(qx, qy), 0.0)
-                best = min(best, d)
-        out[k] = best
+        bdx = 0.0
+        bdy = 0.0
+        bw = 0
+        for w in range(walls.shape[0]):
+            lx, ly = _box_local(pts[p, 0], pts[p, 1], walls[w], cos[w], sin[w])
+            d = _box_sd(lx, ly, walls[w, 2], walls[w, 3])
+            if d < best:  # first minimum wins, like argmin
+                best = d
+                bw = w
+                bdx = min(max(lx, -walls[w, 2]), walls[w, 2]) - lx
+                bdy = min(max(ly, -walls[w, 3]), walls[w, 3]) - ly
+        dist[p] = best
+        vec[p, 0] = cos[bw] * bdx - sin[bw] * bdy
+        vec[p, 1] = sin[bw] * bdx + cos[bw] * bdy
 
 
 @njit(cache=True)
-def ray_distances(origin, yaw, angles, walls, cos, sin, max_dist, out):
-    """``WallSet.ray_distance`` for rays from ``origin [K,E,2]`` at headings ``yaw[k,e] + angles[a]``
-    (directions ``(cos, sin)`` of that sum), into ``out [K,E,A]``."""
-    K, E, A = origin.shape[0], origin.shape[1], angles.shape[0]
-    W = walls.shape[0]
-    for k in range(K):
-        for e in range(E):
-            ox, oy = origin[k, e, 0], origin[k, e, 1]
-            for a in range(A):
-                ang = yaw[k, e] + angles[a]
-                ux = math.cos(ang)
-                uy = math.sin(ang)
-                best = np.inf
-                for w in range(W):
-                    lx, ly = _box_local(ox, oy, walls[w], cos[w], sin[w])
-                    dx = cos[w] * ux + sin[w] * uy
-                    dy = -sin[w] * ux + cos[w] * uy
-                    ix = 1.0 / (1e-12 if abs(dx) < 1e-12 else dx)
-                    iy = 1.0 / (1e-12 if abs(dy) < 1e-12 else dy)
-                    hx, hy = walls[w, 2], walls[w, 3]
-                    t1x = (-hx - lx) * ix
-                    t2x = (hx - lx) * ix
-                    t1y = (-hy - ly) * iy
-                    t2y = (hy - ly) * iy
-                    tmin = max(min(t1x, t2x), min(t1y, t2y))
-                    tmax = min(max(t1x, t2x), max(t1y, t2y))
-                    t0 = max(tmin, 0.0)
-                    t = t0 if tmax >= t0 else max_dist
-                    best = min(best, t)
-                out[k, e, a] = min(best, max_dist)
+def ray_distances(origin, direction, walls, cos, sin, max_dist, out):
+    """``WallSet.ray_distance`` (slab test) for rays ``origin, direction [N,2]`` into ``out [N]``."""
+    for p in range(origin.shape[0]):
+        ux, uy = direction[p, 0], direction[p, 1]
+        best = np.inf
+        for w in range(walls.shape[0]):
+            lx, ly = _box_local(origin[p, 0], origin[p, 1], walls[w], cos[w], sin[w])
+            dx = cos[w] * ux + sin[w] * uy
+            dy = -sin[w] * ux + cos[w] * uy
+            ix = 1.0 / (1e-12 if abs(dx) < 1e-12 else dx)
+            iy = 1.0 / (1e-12 if abs(dy) < 1e-12 else dy)
+            hx, hy = walls[w, 2], walls[w, 3]
+            t1x = (-hx - lx) * ix
+            t2x = (hx - lx) * ix
+            t1y = (-hy - ly) * iy
+            t2y = (hy - ly) * iy
+            tmin = max(min(t1x, t2x), min(t1y, t2y))
+            tmax = min(max(t1x, t2x), max(t1y, t2y))
+            t0 = max(tmin, 0.0)
+            best = min(best, t0 if tmax >= t0 else max_dist)
+        out[p] = min(best, max_dist)
 
 
 # ----------------------------------------------------------------------------- route

@@ -241,6 +241,17 @@ class Route:
         The window keeps the projection on the current corridor run where the route
         folds back on itself (U, S, maze).
         """
+        from common.env.kernels import route_project
+
+        xy = np.ascontiguousarray(xy, dtype=np.float64)
+        s_prev = np.ascontiguousarray(np.broadcast_to(np.asarray(s_prev, np.float64), (len(xy),)))
+        out = np.empty(len(xy))
+        width = int(math.ceil((back + ahead) / self.ds)) + 1
+        route_project(self.points, self.s, float(self.ds), xy, s_prev, float(back), width, out)
+        return out
+
+    def project_reference(self, xy, s_prev, back: float = 0.6, ahead: float = 1.6):
+        """Numpy :meth:`project` (the reference its numba kernel is tested against)."""
         lo = self.index(np.asarray(s_prev) - back)
         width = int(math.ceil((back + ahead) / self.ds)) + 1
         idx = np.minimum(lo[:, None] + np.arange(width)[None, :], len(self.s) - 1)
