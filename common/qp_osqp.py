@@ -62,7 +62,8 @@ def solve_batch_osqp(a, C, c, row_mask, fixed, lo, hi, cfg):
         Cb = np.where(row_mask[b][:, None], Cb, 0.0)
         l = np.concatenate([np.where(row_mask[b], cb, -np.inf), np.where(free, lo[b], a[b])])
         u = np.concatenate([np.full(M, np.inf), np.where(free, hi[b], a[b])])
-        Ax = np.where(on_rows, Cb[np.minimum(ri, M - 1), ci], 1.0)
+        Ax = np.ones(len(ri))
+        Ax[on_rows] = Cb[ri[on_rows], ci[on_rows]]
         if prob is None:
             A = sp.csc_matrix((Ax, (ri, ci)), shape=(M + d, d))
             prob = osqp.OSQP()

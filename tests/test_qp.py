@@ -323,3 +323,19 @@ def test_qp_violation_hand_values():
     np.testing.assert_allclose(qp_violation(a, C, c, np.array([[True, True, False]])), [0.8])
     assert qp_violation(a[0], C[0], c[0]) == pytest.approx(4.7)
     assert qp_violation(np.array([[1.0, 1.0]]), C, np.array([[0.0, 0.0, 0.0]]))[0] == 0.0
+
+
+def test_edge_shapes_no_rows_empty_batch_all_fixed():
+    for name in BACKENDS:
+        r = solve_cbf_qp(np.full((2, D), 1.5), np.zeros((2, 0, D)), np.zeros((2, 0)), backend=name)
+        np.testing.assert_array_equal(r.a_exec, np.ones((2, D)))  # only the box acts
+        assert r.active.shape == (2, 0) and (r.status == STATUS_OPTIMAL).all()
+        assert solve_cbf_qp(np.zeros((0, D)), np.zeros((0, 3, D)), np.zeros((0, 3)), backend=name).a_exec.shape == (0, D)
+        # Everything fixed: nothing to optimize; a violated row can only be reported.
+        a = np.full((2, D), 0.3)
+        C = np.ones((2, 1, D))
+        c = np.array([[1.0], [5.0]])  # 9·0.3 = 2.7 meets the first, not the second
+        r = solve_cbf_qp(a, C, c, fixed_mask=np.ones(D, bool), backend=name)
+        np.testing.assert_array_equal(r.a_exec, a)
+        assert list(r.status) == [STATUS_OPTIMAL, STATUS_INFEASIBLE]
+        assert r.slack[1] == pytest.approx(2.3)
