@@ -1,6 +1,6 @@
 """The numba fast path of the environment against its numpy references.
 
-``build_rows`` vs ``build_rows_reference``, ``WallSet`` queries vs their
+``build_rows`` vs ``build_rows_reference``, ``grasp_strain`` vs its reference, ``WallSet`` queries vs their
 ``*_reference`` methods, ``Route.project`` vs ``project_reference``, and a whole
 ``BatchEnv`` rollout (with resets, drops and the human slot) against a twin env
 whose snapshot/observation/row code is patched to the numpy references.
@@ -10,7 +10,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from common.env import batch_env, geometry, scenarios
+from common.env import batch_env, geometry, physics, scenarios
 from common.env import safety as S
 from common.env.config import GRASP_LOCAL, PAIR_REST, PAYLOAD_POINTS_LOCAL, EnvConfig
 from common.env.geometry import WallSet
@@ -99,6 +99,7 @@ def reference_env(monkeypatch):
         monkeypatch.setattr(geometry.WallSet, "ray_distance", geometry.WallSet.ray_distance_reference)
         monkeypatch.setattr(scenarios.Route, "project", scenarios.Route.project_reference)
         monkeypatch.setattr(S, "build_rows", S.build_rows_reference)
+        monkeypatch.setattr(physics.TransportPhysics, "grasp_strain", physics.TransportPhysics.grasp_strain_reference)
 
     return patch
 

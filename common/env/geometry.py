@@ -18,13 +18,21 @@ def rot(yaw):
 def to_frame(vec, yaw):
     """World vectors [...,2] expressed in frames with heading yaw [...]: R(yaw)^T v."""
     c, s = np.cos(yaw), np.sin(yaw)
-    return np.stack([c * vec[..., 0] + s * vec[..., 1], -s * vec[..., 0] + c * vec[..., 1]], -1)
+    x, y = vec[..., 0], vec[..., 1]
+    out = np.empty(np.broadcast_shapes(x.shape, np.shape(c)) + (2,), np.result_type(c, x))  # cheaper than np.stack
+    out[..., 0] = c * x + s * y
+    out[..., 1] = -s * x + c * y
+    return out
 
 
 def from_frame(vec, yaw):
     """Frame vectors [...,2] to world: R(yaw) v."""
     c, s = np.cos(yaw), np.sin(yaw)
-    return np.stack([c * vec[..., 0] - s * vec[..., 1], s * vec[..., 0] + c * vec[..., 1]], -1)
+    x, y = vec[..., 0], vec[..., 1]
+    out = np.empty(np.broadcast_shapes(x.shape, np.shape(c)) + (2,), np.result_type(c, x))
+    out[..., 0] = c * x - s * y
+    out[..., 1] = s * x + c * y
+    return out
 
 
 class WallSet:

@@ -313,3 +313,25 @@ def safety_rows(carrier_xy, carrier_yaw, payload_xy, payload_yaw, pts_local, gra
                 for j in range(2):
                     cB[i, a, 3 * i + j] = 0.0
     return True
+
+
+# ----------------------------------------------------------------------------- physics
+
+@njit(cache=True)
+def grasp_strain(payload_pos, payload_quat, grasp_local, carrier_xy, hand_z, out):
+    """``TransportPhysics.grasp_strain_reference``: ``out [K,3]`` = 3-D distance from each carrier's
+    hand anchor ``(x, y, hand_z)`` to its grasp point ``pos + q ⊗ (g, 0)`` on the payload."""
+    for k in range(payload_pos.shape[0]):
+        w, ux, uy, uz = payload_quat[k, 0], payload_quat[k, 1], payload_quat[k, 2], payload_quat[k, 3]
+        for i in range(grasp_local.shape[0]):
+            vx, vy, vz = grasp_local[i, 0], grasp_local[i, 1], 0.0
+            tx = 2.0 * (uy * vz - uz * vy)  # t = 2 u x v
+            ty = 2.0 * (uz * vx - ux * vz)
+            tz = 2.0 * (ux * vy - uy * vx)
+            rx = vx + w * tx + (uy * tz - uz * ty)  # v + w t + u x t
+            ry = vy + w * ty + (uz * tx - ux * tz)
+            rz = vz + w * tz + (ux * ty - uy * tx)
+            dx = (payload_pos[k, 0] + rx) - carrier_xy[k, i, 0]
+            dy = (payload_pos[k, 1] + ry) - carrier_xy[k, i, 1]
+            dz = (payload_pos[k, 2] + rz) - hand_z
+            out[k, i] = math.sqrt(dx * dx + dy * dy + dz * dz)

@@ -105,6 +105,14 @@ class TransportPhysics:
 
     def grasp_strain(self):
         """[K,3] 3-D distance between each carrier's hand anchor and its grasp point on the payload."""
+        from common.env.kernels import grasp_strain
+
+        out = np.empty((self.K, N_CARRIERS))
+        grasp_strain(self.payload_pos, self.payload_quat, GRASP_LOCAL, self.carrier_pose[..., :2], CARRY_HEIGHT, out)
+        return out
+
+    def grasp_strain_reference(self):
+        """Numpy :meth:`grasp_strain` (the reference its numba kernel is tested against)."""
         grasp_w = self.payload_pos[:, None, :] + quat_rotate(self.payload_quat, np.broadcast_to(self._grasp3, (self.K, 3, 3)))
         cp = self.carrier_pose
         hand = np.concatenate([cp[..., :2], np.full((self.K, N_CARRIERS, 1), CARRY_HEIGHT)], axis=-1)
