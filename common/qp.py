@@ -21,7 +21,11 @@ largest remaining row violation. As ρ → ∞ this tends to the lexicographic a
 (least-squares violation first, then distance); the box is always respected.
 
 Backends: ``"dual_active_set"`` (Goldfarb–Idnani, numba, default) and
-``"osqp"`` (per-problem OSQP with updates, tight tolerances, polishing).
+``"osqp"`` (per-problem OSQP with updates, tight tolerances, polishing; it
+detects infeasible sets itself but hands their slack QP to the active-set
+kernel, on which OSQP does not converge). STATUS_MAX_ITER marks an answer that
+is not certified (never seen on the benchmark families); callers must treat it
+as unsafe.
 Diagnostics (active rows, KKT residual, slack) are computed afterwards from the
 returned primal by one shared kernel, independently of the backend.
 """
