@@ -82,8 +82,8 @@ def talo_project(
     """Eq. (talo_projection): the regularized closest update to ``g_ind`` meeting
     Eq. (talo_condition) ``grad W . g <= -sigma W``. Returns ``(g_TALO, Delta_gap)``.
 
-    With ``eps = 0`` and ``grad W = 0`` the condition cannot be met by any step
-    along ``grad W``; we then leave ``g_ind`` unchanged instead of dividing by 0.
+    With ``grad W = 0`` (or a correction too large to represent) no step along
+    ``grad W`` can meet the condition; ``g_ind`` is then returned unchanged.
     """
     if sigma < 0 or eps < 0:
         raise ValueError(f"TALO needs sigma >= 0 and eps >= 0 (got {sigma}, {eps})")
@@ -91,10 +91,17 @@ def talo_project(
     grad_w = grad_w.detach()
     w = float(w_gap)
     delta = float(grad_w @ g_ind) + sigma * w
-    denom = float(grad_w @ grad_w) + eps
-    if delta <= 0.0 or denom <= 0.0:
+    norm = float(grad_w.norm())
+    if delta <= 0.0 or norm == 0.0:
         return g_ind.clone(), delta
-    return g_ind - (delta / denom) * grad_w, delta
+    # delta / (n^2 + eps) * grad_w, written with the unit vector so that a tiny
+    # ||grad W|| does not underflow n^2 to 0 (or a denormal) first
+    unit = grad_w / norm
+    step = (delta / norm) * (norm * norm / (norm * norm + eps)) if eps > 0 else delta / norm
+    out = g_ind - step * unit
+    if not bool(torch.isfinite(out).all()):
+        return g_ind.clone(), delta
+    return out, delta
 
 
 @dataclass
