@@ -1,0 +1,619 @@
+"""``sage bench system --json``: figures of the distributed system, each next
+to its in-process twin.
+
+* ``env_steps_per_s[n]``: end-to-end environment steps/s of the whole system
+  (router, shield, learner, ``n`` actor processes, all under
+  ``deploy.supervisor``) vs the same services as threads of one process
+  (in-process mode). Steady state: counted from the actors' ``status``
+  heartbeats (cumulative ``env_steps`` with the sender's clock) over
+  ``measure_s`` after every actor stepped for ``warmup_s``.
+* ``shield_rtt_ms[B]``: round trip of one batched request of ``B`` QPs to the
+  shield process (p50/p99), beside the same request to a shield thread on an
+  in-process Zenoh session and the bare ``solve_cbf_qp`` call (``local_qp``).
+  Requests carry real safety rows of the scenario.
+* ``param_broadcast_ms``: learner parameter message (the learner's own
+  ``publish_params``) from publish to decoded in another process
+  (``echo`` child, same host, same clock), beside the in-process delivery.
+* ``ratio_vs_local_qp``: steps/s of one actor process with the shield service
+  in the loop divided by the same actor with a local in-process QP call
+  (``LocalQPActor``) -- no learner, parameters from the bench (target >= 0.7).
+
+Child entry points of the bench (also run under the supervisor):
+``python -m common.system_bench local-actor --config RUN.json --actor-id I``
+and ``python -m common.system_bench echo --config RUN.json``. Their extra key
+``sage/<run>/bench/ack`` (msgpack map ``seq, t_sent, t_recv, t_decoded``) is
+used by the bench only.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import msgpack
+import numpy as np
+
+RATIO_TARGET = 0.7
+
+
+@dataclass
+class SystemBenchConfig:
+    scenario: str = "narrow_gate"
+    method: str = "happo_cbf"          # shielded, with the cheapest learner update
+    envs_per_actor: int = 4
+    chunk_len: int = 16
+    actor_counts: tuple[int, ...] = (1, 2)
+    warmup_s: float = 2.0              # after every actor stepped, before measuring
+    measure_s: float = 6.0             # steady-state window per throughput figure
+    start_timeout_s: float = 120.0     # services must be stepping by then
+    batch_sizes: tuple[int, ...] = (1, 8, 32, 128)
+    rtt_requests: int = 100            # timed shield requests per batch size (after 10 warm-up)
+    broadcasts: int = 30               # timed parameter broadcasts
+    seed: int = 0
+
+    def validate(self) -> "SystemBenchConfig":
+        if min(self.actor_counts, default=0) < 1 or min(self.batch_sizes, default=0) < 1:
+            raise ValueError("actor counts and batch sizes must be >= 1")
+        if self.measure_s <= 0 or self.warmup_s < 0 or self.rtt_requests < 1 or self.broadcasts < 1:
+            raise ValueError("need measure_s > 0, warmup_s >= 0, rtt_requests >= 1, broadcasts >= 1")
+        return self
+
+
+QUICK = dict(actor_counts=(1,), warmup_s=0.5, measure_s=2.0, batch_sizes=(1, 8), rtt_requests=20, broadcasts=5)
+
+
+def quantiles_ms(samples_s) -> dict:
+    x = np.asarray(samples_s, dtype=float) * 1e3
+    return {"p50": float(np.quantile(x, 0.5)), "p99": float(np.quantile(x, 0.99)), "n": int(x.size)}
+
+
+# ----------------------------------------------------------------- throughput from heartbeats
+class StepMeter:
+    """Cumulative ``env_steps`` of every actor of a run, from its status
+    heartbeats (sender clock), to compute a steady-state system rate."""
+
+    def __init__(self, run_id: str):
+        self.run_id = run_id
+        self.last: dict[str, tuple[float, int]] = {}
+        self._lock = threading.Lock()
+
+    def on_status(self, _key: str, payload: bytes) -> None:
+        from common import wire
+
+        try:
+            msg = wire.decode(payload, run_id=self.run_id, expect="status")
+        except wire.WireError:
+            return
+        if msg.body["role"] == "actor":
+            with self._lock:
+                self.last[msg.body["id"]] = (msg.t, int(msg.body["env_steps"]))
+
+    def snapshot(self) -> dict[str, tuple[float, int]]:
+        with self._lock:
+            return dict(self.last)
+
+    def reset(self) -> None:
+        with self._lock:
+            self.last.clear()
+
+    def stepping(self, n_actors: int) -> bool:
+        snap = self.snapshot()
+        return len(snap) >= n_actors and all(s > 0 for _, s in snap.values())
+
+    def measure(self, n_actors: int, warmup_s: float, measure_s: float, timeout_s: float,
+                alive=lambda: None) -> float:
+        """Wait until ``n_actors`` actors stepped, let them run ``warmup_s``,
+        then sum over actors of steps/s between two snapshots ``measure_s``
+        apart (each actor's own clock). ``alive()`` raises if the system broke."""
+        deadline = time.monotonic() + timeout_s
+        while not self.stepping(n_actors):
+            alive()
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"{n_actors} actor(s) not stepping after {timeout_s} s: {self.snapshot()}")
+            time.sleep(0.05)
+        time.sleep(warmup_s)
+        s0 = self.snapshot()
+        time.sleep(measure_s)
+        alive()
+        s1 = self.snapshot()
+        rate = 0.0
+        for k, (t1, n1) in s1.items():
+            if k in s0 and t1 > s0[k][0]:
+                rate += (n1 - s0[k][1]) / (t1 - s0[k][0])
+        return rate
+
+
+# ----------------------------------------------------------------- the actor with a local QP
+def _local_qp_actor_class():
+    from common.qp import solve_cbf_qp
+    from services.actor.service import ActorService
+
+    class LocalQPActor(ActorService):
+        """The actor service with the exact joint CBF-QP (Eq. qpshield) solved
+        in-process instead of by the shield service: the reference of
+        ``ratio_vs_local_qp``."""
+
+        def filter_actions(self, a_prop, C, c, row_mask, fixed_mask):
+            t0 = time.perf_counter()
+            res = solve_cbf_qp(a_prop, C, c, row_mask, fixed_mask, backend=self.cfg.shield.backend)
+            self.rtt.add(time.perf_counter() - t0)
+            return np.asarray(res.a_exec, dtype=np.float64)
+
+    return LocalQPActor
+
+
+def ack_key(run_id: str) -> str:
+    from common import keys
+
+    return f"{keys.run_root(run_id)}/bench/ack"
+
+
+def echo_main(argv) -> int:
+    """Child: decode every parameter broadcast as an actor would, then ack it
+    with the publish time, the receive time and the decoded time."""
+    import signal
+
+    from common import keys, wire
+    from common.transport import Bus
+    from services.config import TrainConfig
+
+    p = argparse.ArgumentParser(prog="python -m common.system_bench echo")
+    p.add_argument("--config", required=True)
+    cfg = TrainConfig.load(p.parse_args(argv).config)
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    bus = Bus.open(connect=cfg.transport.connect, mode=cfg.transport.mode)
+
+    def on_params(_key, payload):
+        t_recv = time.time()
+        try:
+            msg = wire.decode(payload, run_id=cfg.run_id, expect="params")
+        except wire.WireError as exc:
+            print(f"echo: rejected params ({exc.reason})", file=sys.stderr)
+            return
+        bus.publish(ack_key(cfg.run_id), msgpack.packb(
+            {"seq": msg.seq, "t_sent": msg.t, "t_recv": t_recv, "t_decoded": time.time()}))
+
+    try:
+        bus.subscribe(keys.params(cfg.run_id), on_params)
+        while not stop.wait(0.2):
+            pass
+    finally:
+        bus.close()
+    return 0
+
+
+# ----------------------------------------------------------------- the harness
+class SystemBench:
+    """Runs the measurements; each phase starts its processes once and
+    measures several things on them (start-up of a torch/MuJoCo process costs
+    seconds, far more than a measurement window)."""
+
+    def __init__(self, cfg: SystemBenchConfig, work_dir: Path, log=None):
+        self.cfg = cfg.validate()
+        self.work = Path(work_dir)
+        self.log = log or (lambda text: print(text, file=sys.stderr, flush=True))
+        self._n = 0
+        self._sups: list = []
+
+    # ------------------------------------------------------------- helpers
+    def train_config(self, actors: int, connect: list[str] | None, tag: str):
+        """A run config for one phase; one chunk per update, so the learner's
+        batch does not depend on how many actors are up yet."""
+        from services.config import TrainConfig
+
+        self._n += 1
+        run_id = f"bench-{tag}-{os.getpid()}-{self._n}"
+        cfg = TrainConfig(run_id=run_id, run_dir=str(self.work / run_id), scenario=self.cfg.scenario,
+                          method=self.cfg.method, actors=actors, envs_per_actor=self.cfg.envs_per_actor,
+                          chunk_len=self.cfg.chunk_len, chunks_per_update=1, updates=1_000_000,
+                          status_period_s=0.2, eval_episodes=0, checkpoint_every=1_000_000, seed=self.cfg.seed,
+                          mode="supervised", algo={"epochs": 1, "minibatches": 1})
+        if connect:
+            cfg.transport.connect, cfg.transport.mode = list(connect), "client"
+        cfg.actor.exit_on_unhealthy = True
+        cfg.resolve()
+        return cfg, cfg.save(Path(cfg.run_dir) / "config.json")
+
+    def supervise(self, specs, run_dir):
+        from deploy.supervisor import Supervisor, SupervisorConfig
+
+        # a measurement needs a stable system: a crash is an error, not something to wait out
+        sup = Supervisor(specs, run_dir, SupervisorConfig(restart_budget=0, term_deadline_s=10.0), out=sys.stderr)
+        self._sups.append(sup)
+        sup.start()
+        return sup
+
+    def check(self) -> None:
+        for sup in self._sups:
+            if sup.poll() is not None or any(c.state != "running" for c in sup.children):
+                bad = {c.spec.name: (c.state, c.last_code) for c in sup.children if c.state != "running"}
+                raise RuntimeError(f"a service exited during the benchmark: {bad}; logs in {sup.log_dir}")
+
+    def stop(self, sup) -> None:
+        sup.shutdown("bench done")
+        self._sups.remove(sup)
+
+    def stop_all(self) -> None:
+        for sup in reversed(list(self._sups)):
+            self.stop(sup)
+
+    def requests(self) -> dict[int, dict]:
+        """Shield problems per batch size: the scenario's real safety rows at
+        reset of ``max(batch_sizes)`` envs, random proposals in the action box."""
+        from common.env.batch_env import BatchEnv
+        from services.config import TrainConfig
+
+        n = max(self.cfg.batch_sizes)
+        out = BatchEnv(TrainConfig(scenario=self.cfg.scenario).env_config(), n, seed=self.cfg.seed).reset()
+        full = {"a_prop": np.random.default_rng(self.cfg.seed).uniform(-1, 1, size=(n, 9)), "C": out["C"],
+                "c": out["c"], "row_mask": out["row_mask"], "fixed_mask": out["fixed_mask"]}
+        return {B: {k: np.ascontiguousarray(v[:B]) for k, v in full.items()} for B in self.cfg.batch_sizes}
+
+    def _learner(self, cfg, bus):
+        """The real learner service object, used only for ``publish_params``."""
+        from services.learner.service import LearnerService, _default_method
+
+        learner = LearnerService(cfg, bus, 0)
+        learner.method = _default_method(cfg)
+        return learner
+
+    # ------------------------------------------------------------- measurements
+    def _rtt(self, bus, run_id: str, batches: dict[int, dict]) -> dict:
+        from common import keys, wire
+
+        out = {}
+        for B, body in batches.items():
+            samples = []
+            for i in range(10 + self.cfg.rtt_requests):  # 10 warm-up requests
+                payload = wire.encode("shield_req", body, run_id=run_id, sender="cli/bench", seq=i)
+                t0 = time.perf_counter()
+                reply = bus.request(keys.shield(run_id), payload, timeout=10.0)
+                dt = time.perf_counter() - t0
+                if reply is None or reply.ok is None:
+                    raise RuntimeError(f"shield gave no answer for a batch of {B}: {reply}")
+                rep = wire.decode(reply.ok, run_id=run_id, expect="shield_rep")
+                if rep.body["a_exec"].shape != (B, 9):
+                    raise RuntimeError(f"shield answered shape {rep.body['a_exec'].shape} for {B} problems")
+                if i >= 10:
+                    samples.append(dt)
+            out[B] = quantiles_ms(samples)
+        return out
+
+    def _local_qp(self, batches: dict[int, dict]) -> dict:
+        from common.qp import solve_cbf_qp
+
+        out = {}
+        for B, b in batches.items():
+            samples = []
+            for i in range(10 + self.cfg.rtt_requests):
+                t0 = time.perf_counter()
+                solve_cbf_qp(b["a_prop"], b["C"], b["c"], b["row_mask"], b["fixed_mask"])
+                if i >= 10:
+                    samples.append(time.perf_counter() - t0)
+            out[B] = quantiles_ms(samples)
+        return out
+
+    def _broadcast(self, bus, learner, run_id: str, local: bool) -> dict:
+        """``broadcasts`` parameter messages, one at a time; latency publish ->
+        decoded, from the echo child's acks or (``local``) a subscriber here."""
+        from common import keys, wire
+
+        acks: list[dict] = []
+        if local:
+            def on_params(_k, payload):
+                t_recv = time.time()
+                msg = wire.decode(payload, run_id=run_id, expect="params")
+                acks.append({"seq": msg.seq, "t_sent": msg.t, "t_recv": t_recv, "t_decoded": time.time()})
+            bus.subscribe(keys.params(run_id), on_params)
+        else:
+            bus.subscribe(ack_key(run_id), lambda _k, payload: acks.append(msgpack.unpackb(payload)))
+        time.sleep(0.5)  # let the subscriptions propagate through the router
+        for i in range(self.cfg.broadcasts + 3):  # the first 3 are warm-up
+            n = len(acks)
+            learner.version = i
+            learner.publish_params()
+            deadline = time.monotonic() + 5.0
+            while len(acks) == n and time.monotonic() < deadline:
+                time.sleep(0.0005)
+            time.sleep(0.02)
+        lat = [a["t_decoded"] - a["t_sent"] for a in acks[3:]]
+        if not lat:
+            raise RuntimeError("no parameter broadcast was acknowledged")
+        return quantiles_ms(lat)
+
+    @staticmethod
+    def _params_bytes(learner, run_id: str) -> int:
+        from common import wire
+
+        params = {k: np.asarray(v) for k, v in learner.method.policy_params().items()
+                  if np.asarray(v).dtype.kind in "fiub"}
+        return len(wire.encode("params", {"version": 0, "incarnation": learner.incarnation, "method": "x",
+                                          "params": params, "settings": {"kappa": 1.0, "tau": 1.0}},
+                               run_id=run_id, sender="learner/0", seq=0))
+
+    def _wait_shield(self, bus, run_id: str, alive) -> None:
+        """Until the shield answers a trivial request (its queryable is declared)."""
+        from common import keys, wire
+
+        body = {"a_prop": np.zeros((1, 9)), "C": np.zeros((1, 1, 9)), "c": np.zeros((1, 1)),
+                "row_mask": np.zeros((1, 1), bool), "fixed_mask": np.zeros((1, 9), bool)}
+        payload = wire.encode("shield_req", body, run_id=run_id, sender="cli/bench", seq=0)
+        deadline = time.monotonic() + self.cfg.start_timeout_s
+        while True:
+            reply = bus.request(keys.shield(run_id), payload, timeout=1.0)
+            if reply is not None and reply.ok is not None:
+                return
+            alive()
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"the shield never answered within {self.cfg.start_timeout_s} s")
+            time.sleep(0.05)
+
+    # ------------------------------------------------------------- phase 1: shield, params, one actor
+    def services_phase(self) -> dict:
+        """Router + shield process + echo child: shield round trips, parameter
+        broadcasts, then one actor process with the shield vs with a local QP."""
+        from common import keys
+        from common.transport import Bus
+        from deploy.supervisor import ServiceSpec, free_tcp_port, router_spec, service_specs
+
+        batches = self.requests()
+        local = self._local_qp(batches)
+        port = free_tcp_port()
+        connect = [f"tcp/127.0.0.1:{port}"]
+        cfg, path = self.train_config(1, connect, "svc")
+        run = Path(cfg.run_dir)
+        echo = ServiceSpec("echo", [sys.executable, "-m", "common.system_bench", "echo", "--config", str(path)])
+        self.log(f"bench: shield process, round trips for batches {list(batches)}; parameter broadcasts")
+        sup = self.supervise([router_spec(port), *service_specs(path, roles=("shield",)), echo], run)
+        bus = Bus.open(connect=connect, mode="client")
+        try:
+            self._wait_shield(bus, cfg.run_id, self.check)
+            rtt = self._rtt(bus, cfg.run_id, batches)
+            learner = self._learner(cfg, bus)
+            params = self._broadcast(bus, learner, cfg.run_id, local=False)
+            self.check()
+            meter = StepMeter(cfg.run_id)
+            bus.subscribe(keys.status_all(cfg.run_id), meter.on_status)
+            feeder = _Repeater(learner.publish_params, 0.5)  # actors wait for parameters
+            actor = {"local_qp": [sys.executable, "-m", "common.system_bench", "local-actor",
+                                  "--config", str(path), "--actor-id", "0"],
+                     "shield_service": service_specs(path, roles=("actor",), actor_ids=[0])[0].argv}
+            rates = {}
+            try:
+                for kind, argv in actor.items():
+                    self.log(f"bench: one actor process ({self.cfg.envs_per_actor} envs), {kind.replace('_', ' ')}")
+                    sub = self.supervise([ServiceSpec("actor-0", argv)], run / kind)
+                    meter.reset()
+                    rates[kind] = meter.measure(1, self.cfg.warmup_s, self.cfg.measure_s,
+                                                self.cfg.start_timeout_s, self.check)
+                    self.stop(sub)
+            finally:
+                feeder.stop()
+        finally:
+            bus.close()
+            self.stop_all()
+        # in-process twins: the same shield as a thread on a network-less session
+        cfg_in, _ = self.train_config(1, None, "svc-in")
+        bus = Bus.open(inprocess=True)
+        stop = threading.Event()
+        from services.shield.service import ShieldService
+
+        th = threading.Thread(target=ShieldService(cfg_in, bus, 0, stop=stop).run, daemon=True)
+        th.start()
+        try:
+            self._wait_shield(bus, cfg_in.run_id, lambda: None)
+            rtt_in = self._rtt(bus, cfg_in.run_id, batches)
+            params_in = self._broadcast(bus, self._learner(cfg_in, bus), cfg_in.run_id, local=True)
+        finally:
+            stop.set()
+            th.join(10)
+            bus.close()
+        table = {str(B): {"p50": rtt[B]["p50"], "p99": rtt[B]["p99"],
+                          "inprocess_p50": rtt_in[B]["p50"], "inprocess_p99": rtt_in[B]["p99"],
+                          "local_qp_p50": local[B]["p50"], "local_qp_p99": local[B]["p99"],
+                          "requests": rtt[B]["n"]} for B in batches}
+        return {"shield_rtt_ms": table,
+                "param_broadcast_ms": {"p50": params["p50"], "p99": params["p99"],
+                                       "inprocess_p50": params_in["p50"], "inprocess_p99": params_in["p99"],
+                                       "bytes": self._params_bytes(learner, cfg.run_id), "broadcasts": params["n"]},
+                "actor_steps_per_s": rates,
+                "ratio_vs_local_qp": rates["shield_service"] / rates["local_qp"]}
+
+    # ------------------------------------------------------------- phase 2: the whole system
+    def system_phase(self) -> dict:
+        """Router, shield, learner and actors; actors are added between the
+        measurements (1, then 2, ...), processes first, then threads."""
+        from common import keys
+        from common.transport import Bus
+        from deploy.supervisor import free_tcp_port, router_spec, service_specs
+
+        counts = sorted(set(self.cfg.actor_counts))
+        port = free_tcp_port()
+        connect = [f"tcp/127.0.0.1:{port}"]
+        cfg, path = self.train_config(counts[-1], connect, "sys")
+        run = Path(cfg.run_dir)
+        multi, have = {}, 0
+        self.supervise([router_spec(port), *service_specs(path, roles=("shield", "learner"))], run)
+        bus = Bus.open(connect=connect, mode="client")
+        try:
+            meter = StepMeter(cfg.run_id)
+            bus.subscribe(keys.status_all(cfg.run_id), meter.on_status)
+            for n in counts:
+                self.log(f"bench: whole system, {n} actor process(es)")
+                self.supervise(service_specs(path, roles=("actor",), actor_ids=range(have, n)), run / f"actors-{n}")
+                have = n
+                multi[n] = meter.measure(n, self.cfg.warmup_s, self.cfg.measure_s, self.cfg.start_timeout_s,
+                                         self.check)
+        finally:
+            bus.close()
+            self.stop_all()
+        inproc = self._inprocess_system(counts)
+        return {"env_steps_per_s": {str(n): {"multiprocess": multi[n], "inprocess": inproc[n]} for n in counts}}
+
+    def _inprocess_system(self, counts: list[int]) -> dict[int, float]:
+        from common import keys
+        from common.transport import Bus
+        from services.actor.service import ActorService
+        from services.learner.service import LearnerService
+        from services.shield.service import ShieldService
+
+        cfg, _ = self.train_config(counts[-1], None, "sys-in")
+        bus = Bus.open(inprocess=True)
+        stop = threading.Event()
+        errors: list[BaseException] = []
+        threads: list[threading.Thread] = []
+
+        def launch(svc):
+            def body():
+                try:
+                    svc.run()
+                except BaseException as exc:  # noqa: BLE001 - surfaced by alive()
+                    errors.append(exc)
+            t = threading.Thread(target=body, name=svc.sender, daemon=True)
+            t.start()
+            threads.append(t)
+
+        def alive():
+            if errors:
+                raise RuntimeError(f"in-process service failed: {errors[0]!r}")
+
+        meter = StepMeter(cfg.run_id)
+        bus.subscribe(keys.status_all(cfg.run_id), meter.on_status)
+        out, have = {}, 0
+        try:
+            launch(ShieldService(cfg, bus, 0, stop=stop))
+            launch(LearnerService(cfg, bus, 0, stop=stop))
+            for n in counts:
+                self.log(f"bench: whole system in-process, {n} actor thread(s)")
+                for i in range(have, n):
+                    launch(ActorService(cfg, bus, i, stop=stop))
+                have = n
+                out[n] = meter.measure(n, self.cfg.warmup_s, self.cfg.measure_s, self.cfg.start_timeout_s, alive)
+        finally:
+            stop.set()
+            for t in threads:
+                t.join(15)
+            bus.close()
+        return out
+
+    # ------------------------------------------------------------- all
+    def run(self) -> dict:
+        t0 = time.monotonic()
+        out = {"bench": "system", "config": asdict(self.cfg),
+               "host": {"cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()}}
+        try:
+            out.update(self.services_phase())
+            out["ratio_target"] = RATIO_TARGET
+            out["meets_target"] = bool(out["ratio_vs_local_qp"] >= RATIO_TARGET)
+            out.update(self.system_phase())
+        finally:
+            self.stop_all()
+        out["wall_s"] = time.monotonic() - t0
+        return out
+
+
+class _Repeater:
+    """Call ``fn`` every ``period`` seconds on a thread until stopped."""
+
+    def __init__(self, fn, period: float):
+        self._stop = threading.Event()
+        self._fn, self._period = fn, period
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+        self._thread.start()
+
+    def _loop(self):
+        while not self._stop.is_set():
+            self._fn()
+            self._stop.wait(self._period)
+
+    def stop(self):
+        self._stop.set()
+        self._thread.join(5)
+
+
+# ----------------------------------------------------------------- command line
+def register(commands, bench) -> None:
+    d = SystemBenchConfig()
+    p = bench.add_parser("system", help="distributed throughput/latency vs in-process (shield RTT, params, steps/s)")
+    p.add_argument("--json", action="store_true", help="print the result as JSON (default: a short table)")
+    p.add_argument("--quick", action="store_true", help="smallest run (CI smoke): 1 actor, 2 batch sizes, 2 s windows")
+    p.add_argument("--scenario", default=d.scenario)
+    p.add_argument("--method", default=d.method)
+    p.add_argument("--envs-per-actor", type=int, default=d.envs_per_actor)
+    p.add_argument("--actors", default=",".join(map(str, d.actor_counts)), help="actor counts, e.g. 1,2")
+    p.add_argument("--batch-sizes", default=",".join(map(str, d.batch_sizes)))
+    p.add_argument("--seconds", type=float, default=d.measure_s, help="steady-state window per throughput figure")
+    p.add_argument("--work-dir", default=None, help="keep run dirs and service logs here (default: a temp dir)")
+    p.add_argument("--out", default=None, help="also write the JSON to this file")
+    p.set_defaults(func=cmd_bench_system)
+
+
+def config_from_args(args) -> SystemBenchConfig:
+    cfg = SystemBenchConfig(scenario=args.scenario, method=args.method, envs_per_actor=args.envs_per_actor,
+                            actor_counts=tuple(int(x) for x in args.actors.split(",") if x.strip()),
+                            batch_sizes=tuple(int(x) for x in args.batch_sizes.split(",") if x.strip()),
+                            measure_s=args.seconds)
+    if args.quick:
+        cfg = replace(cfg, **QUICK)
+    return cfg.validate()
+
+
+def cmd_bench_system(args) -> int:
+    try:
+        cfg = config_from_args(args)
+    except ValueError as exc:
+        print(f"sage bench system: {exc}", file=sys.stderr)
+        return 2
+    work = Path(args.work_dir) if args.work_dir else Path(tempfile.mkdtemp(prefix="sage-bench-system-"))
+    result = SystemBench(cfg, work).run()
+    result["work_dir"] = str(work)
+    text = json.dumps(result, indent=2)
+    if args.out:
+        Path(args.out).write_text(text + "\n")
+    if args.json:
+        print(text)
+    else:
+        print(summary_table(result))
+    return 0
+
+
+def summary_table(r: dict) -> str:
+    lines = ["env steps/s      multi-process   in-process"]
+    for n, v in r["env_steps_per_s"].items():
+        lines.append(f"  {n} actor(s)      {v['multiprocess']:12.1f} {v['inprocess']:12.1f}")
+    lines.append("shield RTT ms     p50 / p99 (process)   p50 / p99 (in-process)   local QP p50 / p99")
+    for B, v in r["shield_rtt_ms"].items():
+        lines.append(f"  B={B:<5}        {v['p50']:7.3f} / {v['p99']:7.3f}     {v['inprocess_p50']:7.3f} / "
+                     f"{v['inprocess_p99']:7.3f}        {v['local_qp_p50']:7.3f} / {v['local_qp_p99']:7.3f}")
+    pb = r["param_broadcast_ms"]
+    lines.append(f"param broadcast   p50 {pb['p50']:.3f} ms  p99 {pb['p99']:.3f} ms  "
+                 f"(in-process {pb['inprocess_p50']:.3f} / {pb['inprocess_p99']:.3f}; {pb['bytes']} B)")
+    a = r["actor_steps_per_s"]
+    lines.append(f"one actor steps/s: shield service {a['shield_service']:.1f}, local QP {a['local_qp']:.1f}, "
+                 f"ratio {r['ratio_vs_local_qp']:.2f} (target >= {r['ratio_target']})")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == "local-actor":
+        from services.base import run_entry
+
+        return run_entry("actor", lambda *a: _local_qp_actor_class()(*a), argv[1:])
+    if argv and argv[0] == "echo":
+        return echo_main(argv[1:])
+    print("usage: python -m common.system_bench {local-actor|echo} ... (the benchmark is `sage bench system`)",
+          file=sys.stderr)
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
