@@ -27,6 +27,8 @@ def bench_env(scenario: str = "maze", num_envs: int = 16, steps: int = 100, seed
     start of the round, the tracker targets the env applied at each control step held for its
     ``substeps`` physics steps, one thread, output buffer preallocated. Episode resets inside the
     round are env work and are not replayed. A warm-up step before timing loads the numba kernels.
+    ``ratio_cpu`` is the same ratio from this thread's CPU time (both parts run single-threaded in
+    this thread), which is less sensitive to other processes on a loaded machine.
     """
     import statistics
 
@@ -56,23 +58,24 @@ def bench_env(scenario: str = "maze", num_envs: int = 16, steps: int = 100, seed
         for k, d in enumerate(env.phys.datas):
             mujoco.mj_getState(m, d, state0[k], spec)
             warm0[k] = d.qacc_warmstart
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         for t in range(steps):
             env.step(acts[t])
             ctrls[:, t] = env.phys._ctrl  # the targets applied during this control step
-        t_env = time.perf_counter() - t0
+        t_env, c_env = time.perf_counter() - t0, time.thread_time() - c0
         control = np.repeat(ctrls, n_sub, axis=1)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         mujoco.rollout.rollout(m, data, state0, control, initial_warmstart=warm0, state=out_state)
-        t_raw = time.perf_counter() - t0
-        rounds.append((steps * num_envs / t_env, steps * num_envs / t_raw))
+        t_raw, c_raw = time.perf_counter() - t0, time.thread_time() - c0
+        rounds.append((steps * num_envs / t_env, steps * num_envs / t_raw, c_raw / c_env))
     env_sps = statistics.median(r[0] for r in rounds)
     raw_sps = statistics.median(r[1] for r in rounds)
     ratio = statistics.median(r[0] / r[1] for r in rounds)
     return {"scenario": scenario, "num_envs": num_envs, "control_steps": steps, "substeps": n_sub,
             "physics_steps_per_env": steps * n_sub, "repeats": repeats,
             "env_steps_per_s": env_sps, "raw_physics_env_steps_per_s": raw_sps, "ratio": ratio,
-            "ratios": [r[0] / r[1] for r in rounds]}
+            "ratios": [r[0] / r[1] for r in rounds],
+            "ratio_cpu": statistics.median(r[2] for r in rounds)}
 
 
 def bench_scripted(episodes: int = 20, scenarios=None, seed: int = 0, num_envs: int = 10) -> dict:
