@@ -130,6 +130,7 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         "terminated": Arr("bool", ("T", "K")),
         "truncated": Arr("bool", ("T", "K")),
         "final_state": Arr("float", ("T", "K", "S")),
+        "final_obs": Arr("float", ("T", "K", N_AGENTS, "O")),
         "last_state": Arr("float", ("K", "S")),
         "last_obs": Arr("float", ("K", N_AGENTS, "O")),
         "episodes": EpisodeList(),

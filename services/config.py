@@ -54,6 +54,12 @@ class ActorConfig:
     unhealthy_after_s: float = 10.0    # no shield answer this long -> status "unhealthy"
     exit_on_unhealthy: bool = False    # supervised mode: exit(3) so the supervisor sees it
     params_wait_s: float = 60.0        # max wait for the first parameters before unhealthy
+    # Pacing (bounded staleness at the source): an actor starts a new chunk only
+    # while fewer than this many of its chunks were rolled out with its current
+    # parameter version; 1 = synchronous on-policy, 2 = one chunk of overlap.
+    # Without it, actors outrun a slow learner and most chunks go stale.
+    max_chunks_ahead: int = 2
+    pace_timeout_s: float = 120.0      # a lost params message never deadlocks: roll out anyway
 
 
 @dataclass

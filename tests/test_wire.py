@@ -151,7 +151,8 @@ def test_traj_batch_concatenates_env_axis():
                 **{k: r.normal(size=(T, K, 9)) for k in ("a_st", "a_bar", "a_prop", "a_exec")},
                 "logp": r.normal(size=(T, K, 3)), "leaf": np.zeros((T, K, 3), np.int64),
                 "reward": r.normal(size=(T, K)), "terminated": np.zeros((T, K), bool),
-                "truncated": np.zeros((T, K), bool), "final_state": np.zeros((T, K, 4)),
+                "truncated": np.zeros((T, K), bool), "final_state": np.zeros((T, K, 4)), 
+                "final_obs": np.zeros((T, K, 3, 2), np.float32),
                 "last_state": r.normal(size=(K, 4)), "last_obs": r.normal(size=(K, 3, 2))}
     a, b = chunk(2, 0), chunk(3, 1)
     out = wire.traj_batch([a, b])

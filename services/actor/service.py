@@ -28,9 +28,9 @@ EXIT_UNHEALTHY = 3
 
 # per-step fields of a chunk (docs/wire.md, traj), in the order they are stacked
 STEP_FIELDS = ("obs", "state", "C", "c", "row_mask", "fixed_mask", "a_st", "a_bar", "a_prop",
-               "a_exec", "logp", "leaf", "reward", "terminated", "truncated", "final_state")
+               "a_exec", "logp", "leaf", "reward", "terminated", "truncated", "final_state", "final_obs")
 _DTYPES = {"row_mask": bool, "fixed_mask": bool, "terminated": bool, "truncated": bool, "leaf": np.int64,
-           "obs": np.float32, "state": np.float32, "final_state": np.float32, "logp": np.float64,
+           "obs": np.float32, "state": np.float32, "final_state": np.float32, "final_obs": np.float32, "logp": np.float64,
            "reward": np.float64}
 
 
@@ -59,6 +59,7 @@ class ActorService(Service):
         self.recent_success: deque[float] = deque(maxlen=100)
         self.shield_failures = 0
         self.chunks_sent = 0
+        self._sent_versions: deque[tuple[int, str]] = deque(maxlen=16)
 
     # ------------------------------------------------------------- parameters
     def _on_params(self, _key: str, payload: bytes) -> None:
@@ -180,6 +181,8 @@ class ActorService(Service):
         T = self.cfg.chunk_len
         while not self.stop.is_set():
             self._adopt_params()
+            if not versions:
+                self._pace()
             p = self.params
             if versions and p["incarnation"] != chunk_incarnation:
                 # learner restarted: its resumed policy starts a fresh chunk
@@ -203,7 +206,7 @@ class ActorService(Service):
                     "a_st": prop["a_st"], "a_bar": prop["a_bar"], "a_prop": a_prop, "a_exec": a_exec,
                     "logp": prop["logp"], "leaf": prop["leaf"], "reward": nxt["reward"],
                     "terminated": nxt["terminated"], "truncated": nxt["truncated"],
-                    "final_state": nxt["final_state"]}
+                    "final_state": nxt["final_state"], "final_obs": nxt["final_obs"]}
             for k in STEP_FIELDS:  # copy: envs may reuse their output buffers
                 buf[k].append(np.array(step[k], copy=True))
             versions.append(p["version"])
@@ -229,6 +232,20 @@ class ActorService(Service):
                 versions, episodes = [], []
             self.publish_status()
 
+    def _pace(self) -> None:
+        """Before a new chunk: wait while ``max_chunks_ahead`` chunks already
+        used the current version (the learner has not caught up yet)."""
+        acfg = self.cfg.actor
+        t0 = time.monotonic()
+        while not self.stop.is_set():
+            p = self.params
+            ahead = sum(1 for v, inc in self._sent_versions if v >= p["version"] and inc == p["incarnation"])
+            if ahead < acfg.max_chunks_ahead or time.monotonic() - t0 > acfg.pace_timeout_s:
+                return
+            self.publish_status()
+            self.stop.wait(0.005)
+            self._adopt_params()
+
     def _publish_chunk(self, buf, versions, episodes, last) -> None:
         body = {k: np.stack([np.asarray(x) for x in buf[k]]).astype(_DTYPES.get(k, np.float64), copy=False)
                 for k in STEP_FIELDS}
@@ -242,3 +259,4 @@ class ActorService(Service):
         })
         self.send(keys.traj(self.cfg.run_id, self.actor_id), "traj", body)
         self.chunks_sent += 1
+        self._sent_versions.append((int(max(versions)), self.params["incarnation"]))
