@@ -222,20 +222,26 @@ class SystemBench:
         cfg.resolve()
         return cfg, cfg.save(Path(cfg.run_dir) / "config.json")
 
-    def supervise(self, specs, run_dir):
+    def supervise(self, specs, run_dir, restart_budget: int = 0):
+        """Start ``specs`` under a supervisor. By default a crash fails the
+        benchmark; with a ``restart_budget`` crashed services are restarted
+        and counted (``restarts`` in the result) instead."""
         from deploy.supervisor import Supervisor, SupervisorConfig
 
-        # a measurement needs a stable system: a crash is an error, not something to wait out
-        sup = Supervisor(specs, run_dir, SupervisorConfig(restart_budget=0, term_deadline_s=10.0), out=sys.stderr)
+        cfg = SupervisorConfig(restart_budget=restart_budget, backoff_initial_s=0.2, term_deadline_s=10.0)
+        sup = Supervisor(specs, run_dir, cfg, out=sys.stderr)
         self._sups.append(sup)
         sup.start()
         return sup
 
     def check(self) -> None:
         for sup in self._sups:
-            if sup.poll() is not None or any(c.state != "running" for c in sup.children):
+            if sup.poll() is not None or any(c.state in ("failed", "done") for c in sup.children):
                 bad = {c.spec.name: (c.state, c.last_code) for c in sup.children if c.state != "running"}
                 raise RuntimeError(f"a service exited during the benchmark: {bad}; logs in {sup.log_dir}")
+
+    def restarts(self) -> dict[str, int]:
+        return {c.spec.name: c.starts - 1 for sup in self._sups for c in sup.children if c.starts > 1}
 
     def stop(self, sup) -> None:
         sup.shutdown("bench done")
@@ -440,25 +446,31 @@ class SystemBench:
         connect = [f"tcp/127.0.0.1:{port}"]
         cfg, path = self.train_config(counts[-1], connect, "sys")
         run = Path(cfg.run_dir)
-        multi, have = {}, 0
-        self.supervise([router_spec(port), *service_specs(path, roles=("shield", "learner"))], run)
+        multi, have, restarts = {}, 0, {}
+        self.supervise([router_spec(port), *service_specs(path, roles=("shield", "learner"))], run, restart_budget=5)
         bus = Bus.open(connect=connect, mode="client")
         try:
             meter = StepMeter(cfg.run_id)
             bus.subscribe(keys.status_all(cfg.run_id), meter.on_status)
             for n in counts:
                 self.log(f"bench: whole system, {n} actor process(es)")
-                self.supervise(service_specs(path, roles=("actor",), actor_ids=range(have, n)), run / f"actors-{n}")
+                self.supervise(service_specs(path, roles=("actor",), actor_ids=range(have, n)), run / f"actors-{n}",
+                               restart_budget=5)
                 have = n
                 multi[n] = meter.measure(n, self.cfg.warmup_s, self.cfg.measure_s, self.cfg.start_timeout_s,
                                          self.check)
+                restarts[n] = self.restarts()
         finally:
             bus.close()
             self.stop_all()
-        inproc = self._inprocess_system(counts)
-        return {"env_steps_per_s": {str(n): {"multiprocess": multi[n], "inprocess": inproc[n]} for n in counts}}
+        inproc, failures = self._inprocess_system(counts)
+        return {"env_steps_per_s": {str(n): {"multiprocess": multi[n], "inprocess": inproc[n],
+                                             "restarts": restarts[n], "inprocess_failures": failures[n]}
+                                    for n in counts}}
 
-    def _inprocess_system(self, counts: list[int]) -> dict[int, float]:
+    def _inprocess_system(self, counts: list[int]) -> tuple[dict[int, float], dict[int, list[str]]]:
+        """Steps/s with the services as threads; a failed learner thread is
+        reported (it cannot be restarted), a failed actor or shield aborts."""
         from common import keys
         from common.transport import Bus
         from services.actor.service import ActorService
@@ -468,7 +480,7 @@ class SystemBench:
         cfg, _ = self.train_config(counts[-1], None, "sys-in")
         bus = Bus.open(inprocess=True)
         stop = threading.Event()
-        errors: list[BaseException] = []
+        errors: list[tuple[str, BaseException]] = []
         threads: list[threading.Thread] = []
 
         def launch(svc):
@@ -476,18 +488,19 @@ class SystemBench:
                 try:
                     svc.run()
                 except BaseException as exc:  # noqa: BLE001 - surfaced by alive()
-                    errors.append(exc)
+                    errors.append((svc.sender, exc))
             t = threading.Thread(target=body, name=svc.sender, daemon=True)
             t.start()
             threads.append(t)
 
         def alive():
-            if errors:
-                raise RuntimeError(f"in-process service failed: {errors[0]!r}")
+            fatal = [(who, exc) for who, exc in errors if who != "learner/0"]
+            if fatal:
+                raise RuntimeError(f"in-process {fatal[0][0]} failed: {fatal[0][1]!r}")
 
         meter = StepMeter(cfg.run_id)
         bus.subscribe(keys.status_all(cfg.run_id), meter.on_status)
-        out, have = {}, 0
+        out, failures, have = {}, {}, 0
         try:
             launch(ShieldService(cfg, bus, 0, stop=stop))
             launch(LearnerService(cfg, bus, 0, stop=stop))
@@ -497,12 +510,13 @@ class SystemBench:
                     launch(ActorService(cfg, bus, i, stop=stop))
                 have = n
                 out[n] = meter.measure(n, self.cfg.warmup_s, self.cfg.measure_s, self.cfg.start_timeout_s, alive)
+                failures[n] = [f"{who}: {exc!r}"[:300] for who, exc in errors]
         finally:
             stop.set()
             for t in threads:
                 t.join(15)
             bus.close()
-        return out
+        return out, failures
 
     # ------------------------------------------------------------- all
     def run(self) -> dict:
@@ -588,7 +602,9 @@ def cmd_bench_system(args) -> int:
 def summary_table(r: dict) -> str:
     lines = ["env steps/s      multi-process   in-process"]
     for n, v in r["env_steps_per_s"].items():
-        lines.append(f"  {n} actor(s)      {v['multiprocess']:12.1f} {v['inprocess']:12.1f}")
+        note = f"   restarts {v['restarts']}" if v.get("restarts") else ""
+        note += f"   in-process failures {v['inprocess_failures']}" if v.get("inprocess_failures") else ""
+        lines.append(f"  {n} actor(s)      {v['multiprocess']:12.1f} {v['inprocess']:12.1f}{note}")
     lines.append("shield RTT ms     p50 / p99 (process)   p50 / p99 (in-process)   local QP p50 / p99")
     for B, v in r["shield_rtt_ms"].items():
         lines.append(f"  B={B:<5}        {v['p50']:7.3f} / {v['p99']:7.3f}     {v['inprocess_p50']:7.3f} / "

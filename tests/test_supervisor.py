@@ -16,11 +16,13 @@ import subprocess
 import sys
 import textwrap
 import time
+import urllib.request
 from pathlib import Path
 
 import pytest
 
-from deploy.supervisor import (EXIT_GAVE_UP, ServiceSpec, StatusBoard, Supervisor, SupervisorConfig, parse_ids,
+from deploy.supervisor import (EXIT_GAVE_UP, METRICS_OFFSETS, ServiceSpec, StatusBoard, Supervisor,
+                               SupervisorConfig, add_arguments, config_from_args, free_tcp_port, parse_ids,
                                service_specs, status_line)
 
 PY = sys.executable
@@ -135,6 +137,31 @@ def test_status_board_decodes_and_rejects():
     board.on_message("k", b"\x00garbage")
     assert list(board.latest) == ["actor/2"] and board.rejected == 2
     assert "steps/s     42.0" in board.line()
+
+
+def test_metric_ports_follow_the_documented_convention(tmp_path):
+    """--metrics-base fills the run config so that each service's port (as the
+    services compute it) is the one deploy/prometheus.yml scrapes."""
+    import argparse
+    import re
+
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    args = p.parse_args(["--metrics-base", "9400", "--actors", "3", "--run-dir", str(tmp_path / "r"),
+                         "--connect", "tcp/10.0.0.1:7447"])
+    from services.config import TrainConfig
+
+    cfg = TrainConfig.load(config_from_args(args))
+    ports = {"learner": cfg.ports.learner, "shield": cfg.ports.shield,
+             **{f"actor-{i}": cfg.ports.actor_base + i for i in range(3)}}  # services/base.py run_entry
+    assert ports == {"learner": 9400, "shield": 9401, "actor-0": 9410, "actor-1": 9411, "actor-2": 9412}
+    assert cfg.actors == 3 and cfg.transport.connect == ["tcp/10.0.0.1:7447"] and cfg.transport.mode == "client"
+    text = (ROOT / "deploy" / "prometheus.yml").read_text()
+    jobs = dict(re.findall(r"job_name: (\w+)\n((?:.*\n)*?)(?=  - job_name|\Z)", text))
+    scraped = {job: [int(x) for x in re.findall(r"localhost:(\d+)", body)] for job, body in jobs.items()}
+    assert scraped["sage_learner"] == [9400 + METRICS_OFFSETS["learner"]]
+    assert scraped["sage_shield"] == [9400 + METRICS_OFFSETS["shield"]]
+    assert scraped["sage_actors"] == [9400 + METRICS_OFFSETS["actor_base"] + i for i in range(8)]
 
 
 # ------------------------------------------------------------------ restarts
@@ -285,11 +312,20 @@ def test_supervised_run_survives_a_killed_actor(tmp_path):
     cfg = TrainConfig(run_id="suptest", run_dir=str(run), method="happo_cbf", actors=2, envs_per_actor=2,
                       chunk_len=8, updates=100_000, status_period_s=0.25, eval_episodes=0,
                       checkpoint_every=100_000, algo={"epochs": 1, "minibatches": 1, "critic_hidden": 32})
+    base = free_tcp_port()  # Prometheus: base learner, base+1 shield, base+10+i actor i
+    cfg.ports.learner, cfg.ports.shield, cfg.ports.actor_base = base, base + 1, base + 10
     path = cfg.resolve().save(run / "config.json")
     proc = subprocess.Popen([PY, "-m", "deploy.supervisor", "--config", str(path)], cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         wait_for(lambda: _member(run, "learner/0").get("version", -1) >= 2, 100, "two parameter updates", 0.2)
+        scraped = {port: urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10).read().decode()
+                   for port in (base, base + 1, base + 10, base + 11)}
+        assert "sage_learner_updates_total" in scraped[base]
+        assert "sage_shield_requests_total" in scraped[base + 1]
+        for i in (0, 1):
+            assert any(line.startswith("sage_actor_env_steps_total{") and f'actor_id="{i}"' in line
+                       for line in scraped[base + 10 + i].splitlines())
         victim = _status(run)["services"]["actor-1"]["pid"]
         os.kill(victim, signal.SIGKILL)
         wait_for(lambda: events(run, "restart", "actor-1"), 30, "actor-1 restart")

@@ -1,0 +1,165 @@
+"""common/system_bench.py: the measuring parts of `sage bench system`.
+
+The whole benchmark starts a dozen processes (over a minute on 2 cores), so
+it is run by hand (`sage bench system --json`); here each of its parts is
+checked on its own: the steady-state rate from heartbeats, the quantiles, the
+local-QP reference actor, the shield round trip against a real in-process
+shield, the parameter broadcast measurement and the command line."""
+from __future__ import annotations
+
+import argparse
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from common import keys, wire
+from common.system_bench import (QUICK, StepMeter, SystemBench, SystemBenchConfig, config_from_args, quantiles_ms,
+                                 register, summary_table)
+
+
+def status_msg(run_id: str, role: str, member: str, env_steps: int) -> bytes:
+    body = {"role": role, "id": member, "state": "running", "pid": 1, "uptime_s": 1.0, "version": 0,
+            "env_steps": env_steps, "env_steps_per_s": 0.0, "updates": 0, "success_rate": None,
+            "shield_p99_s": None, "message": "", "extra": {}}
+    return wire.encode("status", body, run_id=run_id, sender=f"{role}/{member}", seq=0)
+
+
+def test_quantiles_match_numpy():
+    x = np.random.default_rng(0).exponential(0.002, size=501)
+    q = quantiles_ms(x)
+    assert q["n"] == 501
+    assert q["p50"] == pytest.approx(1e3 * np.median(x))
+    assert q["p99"] == pytest.approx(1e3 * np.sort(x)[495])  # linear interpolation lands on index 495 exactly
+
+
+def test_step_meter_sums_actor_rates_on_the_sender_clock():
+    meter = StepMeter("runA")
+    rates = {"0": 400.0, "1": 150.0}
+    t0 = time.time()
+    stop = threading.Event()
+
+    def feed():
+        while not stop.is_set():
+            for member, r in rates.items():
+                # steps derived from the same clock the envelope is stamped with
+                meter.on_status("k", status_msg("runA", "actor", member, 1 + int(r * (time.time() - t0))))
+            meter.on_status("k", status_msg("runA", "learner", "0", 10**9))   # not an actor
+            meter.on_status("k", status_msg("runB", "actor", "7", 10**9))     # another run
+            stop.wait(0.01)
+
+    th = threading.Thread(target=feed, daemon=True)
+    th.start()
+    try:
+        rate = meter.measure(2, warmup_s=0.05, measure_s=0.5, timeout_s=10)
+    finally:
+        stop.set()
+        th.join()
+    assert sorted(meter.snapshot()) == ["0", "1"]
+    assert rate == pytest.approx(550.0, rel=0.02)
+
+
+def test_step_meter_times_out_and_propagates_failures():
+    meter = StepMeter("runA")
+    meter.on_status("k", status_msg("runA", "actor", "0", 0))  # up, not stepping
+    with pytest.raises(TimeoutError):
+        meter.measure(1, 0.0, 0.1, timeout_s=0.2)
+
+    def broken():
+        raise RuntimeError("service died")
+
+    with pytest.raises(RuntimeError, match="service died"):
+        meter.measure(1, 0.0, 0.1, timeout_s=5, alive=broken)
+
+
+def test_local_qp_actor_executes_the_exact_qp():
+    from common.qp import qp_violation, solve_cbf_qp
+    from common.qp_random import random_cbf_problems
+    from common.system_bench import _local_qp_actor_class
+    from services.config import TrainConfig
+
+    actor = _local_qp_actor_class()(TrainConfig(run_id="r", method="happo_cbf"), None, 0)
+    a, C, c, _ = random_cbf_problems(np.random.default_rng(1), 16)
+    rows, fixed = np.ones(c.shape, bool), np.zeros(a.shape, bool)
+    a_exec = actor.filter_actions(a, C, c, rows, fixed)
+    ref = solve_cbf_qp(a, C, c, rows, fixed)
+    np.testing.assert_allclose(a_exec, ref.a_exec, atol=1e-12)
+    assert np.all(qp_violation(a_exec, C, c, rows) <= 1e-6)
+    assert np.abs(a_exec - a).max() > 1e-3  # the rows were active: something was filtered
+    assert actor.rtt.quantile(0.5) is not None
+
+
+class _ParamsPublisher:
+    """Stands in for the learner: the bench only calls ``publish_params``."""
+
+    def __init__(self, bus, run_id):
+        self.bus, self.run_id, self.version, self.seq = bus, run_id, 0, 0
+
+    def publish_params(self):
+        body = {"version": self.version, "incarnation": "i", "method": "happo_cbf",
+                "params": {"carrier_0/W": np.ones((15, 8))}, "settings": {"kappa": 1.0}}
+        self.bus.publish(keys.params(self.run_id),
+                         wire.encode("params", body, run_id=self.run_id, sender="learner/0", seq=self.seq))
+        self.seq += 1
+
+
+def test_shield_round_trip_and_broadcast_in_process(tmp_path):
+    from common.qp import solve_cbf_qp
+    from common.transport import Bus
+    from services.shield.service import ShieldService
+
+    cfg = SystemBenchConfig(batch_sizes=(1, 8), rtt_requests=5, broadcasts=4)
+    bench = SystemBench(cfg, tmp_path, log=lambda _t: None)
+    batches = bench.requests()
+    assert {B: b["a_prop"].shape for B, b in batches.items()} == {1: (1, 9), 8: (8, 9)}
+    assert batches[8]["C"].shape[1:] == (34, 9) and batches[8]["row_mask"].any()
+    run_cfg, _ = bench.train_config(1, None, "t")
+    bus = Bus.open(inprocess=True)
+    stop = threading.Event()
+    shield = ShieldService(run_cfg, bus, 0, stop=stop)
+    th = threading.Thread(target=shield.run, daemon=True)
+    th.start()
+    try:
+        bench._wait_shield(bus, run_cfg.run_id, lambda: None)
+        rtt = bench._rtt(bus, run_cfg.run_id, batches)
+        params = bench._broadcast(bus, _ParamsPublisher(bus, run_cfg.run_id), run_cfg.run_id, local=True)
+        # the shield answered with the exact QP (what the actor would execute)
+        b = batches[8]
+        reply = bus.request(keys.shield(run_cfg.run_id), wire.encode("shield_req", b, run_id=run_cfg.run_id,
+                                                                     sender="cli/t", seq=99), timeout=10)
+        got = wire.decode(reply.ok, run_id=run_cfg.run_id, expect="shield_rep").body["a_exec"]
+        np.testing.assert_allclose(got, solve_cbf_qp(b["a_prop"], b["C"], b["c"], b["row_mask"],
+                                                     b["fixed_mask"]).a_exec, atol=1e-9)
+    finally:
+        stop.set()
+        th.join(10)
+        bus.close()
+    assert {B: r["n"] for B, r in rtt.items()} == {1: 5, 8: 5}
+    assert all(0 < r["p50"] <= r["p99"] for r in rtt.values())
+    assert params["n"] == 4 and 0 < params["p50"] <= params["p99"]
+    assert shield.n_requests >= 2 * (10 + 5)  # warm-up + timed requests all reached the shield
+
+
+def test_command_line_and_table():
+    p = argparse.ArgumentParser()
+    commands = p.add_subparsers()
+    bench = commands.add_parser("bench").add_subparsers()
+    register(commands, bench)
+    args = p.parse_args(["bench", "system", "--quick", "--json", "--actors", "1,2"])
+    cfg = config_from_args(args)
+    assert cfg.actor_counts == QUICK["actor_counts"] and cfg.measure_s == QUICK["measure_s"] and args.json
+    args = p.parse_args(["bench", "system", "--actors", "1,2", "--batch-sizes", "1,32", "--seconds", "3"])
+    cfg = config_from_args(args)
+    assert (cfg.actor_counts, cfg.batch_sizes, cfg.measure_s) == ((1, 2), (1, 32), 3.0)
+    with pytest.raises(ValueError):
+        config_from_args(p.parse_args(["bench", "system", "--actors", "0"]))
+    result = {"env_steps_per_s": {"1": {"multiprocess": 120.0, "inprocess": 60.0}},
+              "shield_rtt_ms": {"8": {"p50": 3.9, "p99": 4.3, "inprocess_p50": 3.4, "inprocess_p99": 3.9,
+                                      "local_qp_p50": 0.07, "local_qp_p99": 0.1}},
+              "param_broadcast_ms": {"p50": 2.5, "p99": 4.0, "inprocess_p50": 0.9, "inprocess_p99": 1.1,
+                                     "bytes": 27547},
+              "actor_steps_per_s": {"shield_service": 175.0, "local_qp": 212.0}, "ratio_vs_local_qp": 0.83,
+              "ratio_target": 0.7}
+    table = summary_table(result)
+    assert "ratio 0.83" in table and "B=8" in table and "27547 B" in table
