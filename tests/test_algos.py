@@ -229,3 +229,27 @@ def test_actor_settings_schedules():
     assert s0["kappa"] == pytest.approx(1.0) and s1["kappa"] == pytest.approx(30.0)
     assert s0["tau"] == pytest.approx(1.0) and s1["tau"] == pytest.approx(0.1)
     assert happo.actor_settings(0.5)["kappa"] == 0.0                     # identity center
+
+
+@pytest.mark.parametrize("name", ["sage", "happo"])
+def test_human_blocks_contribute_no_actor_loss(name):
+    """Carrier 0 human-occupied everywhere: its tree receives no policy gradient."""
+    m = make_method(name, AlgoConfig(ent_coef=0.0, epochs=1, minibatches=1), OBS, 0)
+    task = BanditTask(obs_dim=OBS, seed=0, n_rows=10, row_frac=0.5)
+    rng = np.random.default_rng(0)
+    ctx_fixed = np.zeros((6, 8, 9), dtype=bool)
+    ctx_fixed[..., 0:3] = True
+    original = task.sample_context
+    task.sample_context = lambda r, T, K: {**original(r, T, K), "fixed_mask": ctx_fixed}
+    batch = collect(m, task, 6, 8, 0.5, rng)
+    assert np.all(batch["logp"][..., 0] == 0.0)
+    mb, _ = m._prepare(batch)
+    L, team = team_surrogates(m, mb)
+    g_ind, g_team, _, _ = talo_gap(L, team, m.groups, with_hvp=False)
+    n0 = sum(p.numel() for p in m.groups[0])
+    assert torch.all(g_ind[:n0] == 0) and torch.all(g_team[:n0] == 0)
+    assert g_ind[n0:].abs().sum() > 0
+    tree0 = [p.detach().clone() for p in m.groups[0]]
+    m.update(batch, 0.5)
+    for a, b in zip(tree0, m.groups[0]):
+        torch.testing.assert_close(a, b.detach(), rtol=0, atol=0)
