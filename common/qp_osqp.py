@@ -38,6 +38,9 @@ def _settings(cfg) -> dict:
         polish_refine_iter=10,
         max_iter=cfg.osqp_max_iter,
         warm_starting=True,
+        # OSQP's default (0) times the factorization to decide when to adapt its
+        # step size: non-deterministic, and at eps = 1e-9 it can stall to max_iter.
+        adaptive_rho_interval=25,
     )
 
 
@@ -72,6 +75,14 @@ def solve_batch_osqp(a, C, c, row_mask, fixed, lo, hi, cfg):
             prob.update(q=-a[b], l=l, u=u, Ax=Ax)
         res = prob.solve(raise_error=False)
         iters[b] = res.info.iter
+        if res.info.status_val != _SOLVED and res.info.status_val not in _INFEASIBLE:
+            # Rare stalls of the updated problem (scaling and warm start come from
+            # other QPs): retry once with a fresh setup of this QP alone.
+            fresh = osqp.OSQP()
+            fresh.setup(sp.eye(d, format="csc"), -a[b], sp.csc_matrix((Ax, (ri, ci)), shape=(M + d, d)),
+                        l, u, **_settings(cfg))
+            res = fresh.solve(raise_error=False)
+            iters[b] += res.info.iter
         row_norm = np.linalg.norm(Cb, axis=1)
         constant_violated = np.any(row_mask[b] & (row_norm <= cfg.zero_tol) & (cb > cfg.tol))
         if res.info.status_val == _SOLVED and not constant_violated:
