@@ -337,6 +337,8 @@ def _build_torch_classes() -> dict:
             team.load_params(params)
             return team
 
+    for cls in (HardObliqueTree, TeamPolicy):
+        cls.__qualname__ = cls.__name__  # reachable as common.tree.<name>
     return {"HardObliqueTree": HardObliqueTree, "TeamPolicy": TeamPolicy}
 
 

@@ -270,3 +270,31 @@ def test_default_step_count_converges_on_full_size_rows(kappa):
     grad = (x - a) - kappa * np.einsum("bm,bmd->bd", r, Cn)
     assert np.max(np.linalg.norm(grad, axis=1)) < 1e-8
     assert np.mean(np.any(r > 0, axis=1)) > 0.9  # the problems do have active rows
+
+
+@settings(max_examples=5, deadline=None)
+@given(st.integers(0, 10_000), st.sampled_from([2.0, 30.0]))
+def test_unrolled_gradients_match_finite_differences(seed, kappa):
+    """Away from active-set switching surfaces the converged unrolled map is smooth: its torch
+    autograd Jacobian w.r.t. a_ST, C and c equals central differences of the numpy twin."""
+    rng = np.random.default_rng(seed)
+    M = 6
+    a = rng.uniform(-1, 1, (1, D))
+    C = rng.normal(size=(1, M, D))
+    c = np.einsum("bmd,bd->bm", C, a) + rng.normal(0.0, 1.0, (1, M))
+    mask = np.ones((1, M), bool)
+    x = sail_project_np(a, C, c, mask, kappa)
+    Cn, cn = C / np.linalg.norm(C, axis=-1, keepdims=True), c / np.linalg.norm(C, axis=-1)
+    assume(np.min(np.abs(cn - np.einsum("bmd,bd->bm", Cn, x))) > 1e-3)
+    jac = torch.autograd.functional.jacobian(
+        lambda a_, C_, c_: sail_project(a_, C_, c_, torch.from_numpy(mask), kappa),
+        tuple(torch.from_numpy(v) for v in (a, C, c)))
+    eps = 1e-6
+    for k, v in enumerate((a, C, c)):
+        for i in range(v.size):
+            args_p, args_m = [a, C, c], [a, C, c]
+            args_p[k], args_m[k] = v.copy(), v.copy()
+            args_p[k].flat[i] += eps
+            args_m[k].flat[i] -= eps
+            fd = (sail_project_np(*args_p, mask, kappa) - sail_project_np(*args_m, mask, kappa)) / (2 * eps)
+            np.testing.assert_allclose(jac[k].numpy().reshape(D, -1)[:, i], fd.ravel(), atol=1e-6)
