@@ -25,9 +25,14 @@ iterate sits on the kink of a nearly active row. t is treated as a constant by
 autograd. Inside a region with a fixed active set the accepted full step is
 exact, so the unrolled map's Jacobian w.r.t. a_ST is (I + kappa C_J^T C_J)^{-1}
 (Eq. sail_jacobian). With no violated row the gradient is exactly 0 and the map
-is exactly the identity. Steps: each step adds or drops rows of the active set;
-up to ~10 rows this converges in a few steps, `n_newton` bounds the count (the
-numpy twin stops early per sample once a full step was exact).
+is exactly the identity.
+
+Step count: each step adds or drops active rows. With the default 20 steps,
+random problems with 34 rows (about half violated) reach ||grad f|| < 1e-8 for
+kappa <= 100 (tests/test_sail.py) and ~99.9% of them at kappa = 1000; the numpy
+twin stops early per sample once a full step was exact (typically 2-6 steps).
+If the budget runs out, the result is the (monotonically improved) last iterate,
+which is still a valid proposal center, just not the exact minimizer.
 
 Fixed (human) blocks: pass `fixed_mask`/`fixed_action`. The fixed columns are
 first moved to the right-hand side (`absorb_fixed`: C_r x_r >= c - C_h a_h), then
