@@ -204,9 +204,11 @@ class SystemBench:
         self._sups: list = []
 
     # ------------------------------------------------------------- helpers
-    def train_config(self, actors: int, connect: list[str] | None, tag: str):
+    def train_config(self, actors: int, connect: list[str] | None, tag: str, unpaced: bool = False):
         """A run config for one phase; one chunk per update, so the learner's
-        batch does not depend on how many actors are up yet."""
+        batch does not depend on how many actors are up yet. ``unpaced``: the
+        actor never waits for the learner (phase 1 has none: it measures the
+        actor's own stepping rate)."""
         from services.config import TrainConfig
 
         self._n += 1
@@ -219,6 +221,8 @@ class SystemBench:
         if connect:
             cfg.transport.connect, cfg.transport.mode = list(connect), "client"
         cfg.actor.exit_on_unhealthy = True
+        if unpaced:
+            cfg.actor.max_chunks_ahead = 1 << 30
         cfg.resolve()
         return cfg, cfg.save(Path(cfg.run_dir) / "config.json")
 
@@ -374,7 +378,7 @@ class SystemBench:
         local = self._local_qp(batches)
         port = free_tcp_port()
         connect = [f"tcp/127.0.0.1:{port}"]
-        cfg, path = self.train_config(1, connect, "svc")
+        cfg, path = self.train_config(1, connect, "svc", unpaced=True)
         run = Path(cfg.run_dir)
         echo = ServiceSpec("echo", [sys.executable, "-m", "common.system_bench", "echo", "--config", str(path)])
         self.log(f"bench: shield process, round trips for batches {list(batches)}; parameter broadcasts")

@@ -615,7 +615,11 @@ def cmd_up(args) -> int:
     except (ValueError, FileNotFoundError) as exc:
         print(f"sage up: {exc}", file=sys.stderr)
         return 2
-    return run_supervised(path, roles=roles, actor_ids=ids)
+    try:
+        return run_supervised(path, roles=roles, actor_ids=ids)
+    except RuntimeError as exc:  # e.g. the local router never came up; details are in the run's logs/
+        print(f"sage up: {exc}", file=sys.stderr)
+        return EXIT_GAVE_UP
 
 
 def main(argv: list[str] | None = None) -> int:
