@@ -145,7 +145,12 @@ def run_entry(role: str, make_service, argv=None) -> int:
     port = {"shield": cfg.ports.shield, "learner": cfg.ports.learner}.get(
         role, cfg.ports.actor_base + member if cfg.ports.actor_base else 0)
     server = serve_metrics(port, registry)
-    bus = Bus.open(connect=cfg.transport.connect, listen=cfg.transport.listen, mode=cfg.transport.mode)
+    mode = cfg.transport.mode
+    if mode == "peer" and cfg.transport.connect and not cfg.transport.listen:
+        # A peer with gossip off that only dials a router does not get its
+        # partners' publications routed to it; as a client it does.
+        mode = "client"
+    bus = Bus.open(connect=cfg.transport.connect, listen=cfg.transport.listen, mode=mode)
     try:
         service = make_service(cfg, bus, member, registry, stop)
         return int(service.run() or 0)

@@ -97,6 +97,7 @@ def _req(n, seed):
 
 def test_shield_micro_batches_and_replies_per_request(tmp_path, bus):
     cfg = make_cfg(tmp_path, shield=ShieldConfig(max_batch=10, window_s=2.0))
+    cfg.actors = 4  # four askers: the window may close once all four are queued
     calls = []
 
     def spy_solve(*args):
@@ -267,3 +268,38 @@ def test_shield_with_the_real_qp_matches_a_direct_call(tmp_path, bus):
     np.testing.assert_allclose(body["a_exec"][:, 0], 0.5, atol=1e-7)
     stop.set()
     th.join(5)
+
+
+def test_shield_window_closes_once_every_actor_asked(tmp_path, bus):
+    # A 60 s window would outlast the 5 s request timeout: the answers only
+    # arrive because the window closes when one request per actor is queued.
+    cfg = make_cfg(tmp_path, shield=ShieldConfig(max_batch=1000, window_s=60.0))
+    cfg.actors = 2
+    calls = []
+
+    def spy_solve(*args):
+        calls.append(args[0].shape[0])
+        return fake_solve(*args)
+
+    stop = threading.Event()
+    shield = ShieldService(cfg, bus, stop=stop, solve=spy_solve)
+    th = threading.Thread(target=shield.run, daemon=True)
+    th.start()
+    wait_for(lambda: shield.state == "running")
+    calls.clear()
+    reqs = [_req(n, s) for s, n in enumerate((2, 3))]
+    replies = [None, None]
+
+    def ask(i):
+        p = wire.encode("shield_req", reqs[i], run_id=cfg.run_id, sender=f"actor/{i}", seq=0)
+        replies[i] = bus.request(keys.shield(cfg.run_id), p, timeout=5.0)
+
+    ts = [threading.Thread(target=ask, args=(i,)) for i in range(2)]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join()
+    stop.set()
+    th.join(timeout=5)
+    assert all(r is not None and r.ok is not None for r in replies)
+    assert sum(calls) == 5

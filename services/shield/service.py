@@ -72,7 +72,10 @@ class ShieldService(Service):
             good: list[tuple[Request, dict]] = []
             rows = self._admit(first, good)
             deadline = time.perf_counter() + self.cfg.shield.window_s
-            while rows < self.cfg.shield.max_batch:
+            # Every actor sends one request per env step, so once one request
+            # per actor is queued nobody else is coming: close the window early.
+            expected = max(1, int(self.cfg.actors))
+            while rows < self.cfg.shield.max_batch and len(batch) < expected:
                 remaining = deadline - time.perf_counter()
                 try:
                     req = q.get_nowait() if remaining <= 0 else q.get(timeout=remaining)
