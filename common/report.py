@@ -236,7 +236,8 @@ def write_figures(results: list[Result], summary: dict, out_dir: Path) -> list[P
             g, mu, sd = _curves(results, m, key)
             ax.plot(g, mu, color=colors[m], label=METHOD_TITLES[m]); ax.fill_between(g, mu - sd, mu + sd, color=colors[m], alpha=0.15)
         ax.set_title(title, fontsize=9); ax.set_xlabel("training progress")
-    axes[0, 0].legend(fontsize=7)
+    if axes[0, 0].get_legend_handles_labels()[0]:
+        axes[0, 0].legend(fontsize=7)
     fig.tight_layout(); path = out_dir / "sail_talo_ablation.png"; fig.savefig(path, dpi=130); plt.close(fig)
     written.append(path)
 

@@ -1,0 +1,48 @@
+"""sage train -> sage eval -> sage suite -> sage report on a tiny real run."""
+import json
+
+import pytest
+
+from common.cli import main
+from common.report import EVAL_KEYS
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    run = tmp_path_factory.mktemp("run") / "r"
+    code = main(["train", "--method", "sage", "--updates", "1", "--envs-per-actor", "2",
+                 "--chunk-len", "8", "--eval-episodes", "1", "--run-dir", str(run), "--quiet"])
+    assert code == 0
+    return run
+
+
+def test_eval_reads_newest_checkpoint(tiny_run, capsys):
+    assert main(["eval", str(tiny_run), "--episodes", "2", "--json"]) == 0
+    rec = json.loads(capsys.readouterr().out)
+    assert rec["method"] == "sage" and rec["episodes"] == 2 and rec["shielded"] is True
+    for key in EVAL_KEYS:
+        assert key in rec
+    assert 0.0 <= rec["proposal_violation"] <= 1.0
+
+
+def test_eval_records_traces_for_the_audit(tiny_run, tmp_path, capsys):
+    out = tmp_path / "rec.npz"
+    assert main(["eval", str(tiny_run), "--episodes", "1", "--record", str(out), "--json"]) == 0
+    assert out.exists()
+    assert main(["audit", str(out), "--out", str(tmp_path / "audit")]) == 0
+
+
+@pytest.mark.slow
+def test_suite_runs_reports_and_resumes(tmp_path):
+    from common.report import write_report
+    from common.suite import SuiteConfig, run_suite
+
+    cfg = SuiteConfig(methods=["happo"], scenarios=["narrow_gate"], seeds=[0], minutes_per_run=0.05,
+                      eval_episodes=1, envs_per_actor=2, workers=1, out_dir=str(tmp_path / "suite"))
+    written = run_suite(cfg, log=lambda *_: None)
+    assert len(written) == 1
+    result = json.loads(written[0].read_text())
+    assert result["method"] == "happo" and set(EVAL_KEYS) <= set(result["eval"])
+    assert run_suite(cfg, log=lambda *_: None) == []  # resumable: nothing left to run
+    report = write_report(written, tmp_path / "report")
+    assert report["runs"] == 1
