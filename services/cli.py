@@ -27,6 +27,11 @@ def register(commands, bench) -> None:
     p.add_argument("--eval-episodes", type=int, default=d.eval_episodes)
     p.add_argument("--metrics-port", type=int, default=0, help="Prometheus port (in-process registry); 0 = off")
     p.add_argument("--config", default=None, help="start from a saved config JSON (flags override)")
+    p.add_argument("--human-slot", type=int, default=None, choices=(0, 1, 2),
+                   help="put the scripted human partner in this carrier slot (exogenous, no tree)")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="override a config field, e.g. --set algo.actor_lr=1e-3 --set env.max_steps=400 "
+                        "--set shield.window_s=0.001 (value parsed as JSON, else string)")
     p.add_argument("--quiet", action="store_true", help="no live progress line")
     p.set_defaults(func=cmd_train)
 
@@ -37,6 +42,10 @@ def config_from_args(args) -> TrainConfig:
     cfg.actors, cfg.envs_per_actor, cfg.chunk_len = args.actors, args.envs_per_actor, args.chunk_len
     cfg.max_lag, cfg.seed, cfg.mode, cfg.eval_episodes = args.max_lag, args.seed, args.mode, args.eval_episodes
     cfg.ports.inprocess = args.metrics_port
+    if args.human_slot is not None:
+        cfg.env = {**cfg.env, "human_slot": args.human_slot}
+    for item in args.set:
+        apply_override(cfg, item)
     if args.run_id:
         cfg.run_id = args.run_id
     if args.run_dir:
@@ -44,6 +53,27 @@ def config_from_args(args) -> TrainConfig:
     if cfg.mode == "supervised":
         cfg.actor.exit_on_unhealthy = True  # let the supervisor see and restart it
     return cfg.resolve()
+
+
+def apply_override(cfg: TrainConfig, item: str) -> None:
+    """``SECTION.KEY=VALUE`` onto the config (env/algo dicts or a nested dataclass)."""
+    import dataclasses
+
+    if "=" not in item or "." not in item.split("=", 1)[0]:
+        raise SystemExit(f"--set expects SECTION.KEY=VALUE, got {item!r}")
+    path, raw = item.split("=", 1)
+    section, key = path.split(".", 1)
+    try:
+        value = json.loads(raw)
+    except json.JSONDecodeError:
+        value = raw
+    if section in ("env", "algo"):
+        setattr(cfg, section, {**getattr(cfg, section), key: value})
+        return
+    target = getattr(cfg, section, None)
+    if not dataclasses.is_dataclass(target) or key not in {f.name for f in dataclasses.fields(target)}:
+        raise SystemExit(f"--set: unknown config field {path!r}")
+    setattr(target, key, value)
 
 
 def final_eval(cfg: TrainConfig, params: dict) -> dict:

@@ -19,3 +19,22 @@ def test_help_lists_core_commands(capsys):
 
 def test_no_command_prints_help_and_fails(capsys):
     assert main([]) == 2
+
+
+def test_train_overrides_reach_the_resolved_config(tmp_path):
+    import pytest
+
+    from services.cli import apply_override
+    from services.config import TrainConfig
+
+    cfg = TrainConfig()
+    apply_override(cfg, "algo.actor_lr=0.001")
+    apply_override(cfg, "env.human_slot=2")
+    apply_override(cfg, "shield.window_s=0.0005")
+    assert cfg.algo_config().actor_lr == 0.001
+    assert cfg.env_config().human_slot == 2
+    assert cfg.shield.window_s == 0.0005
+    with pytest.raises(SystemExit):
+        apply_override(cfg, "shield.no_such_field=1")
+    with pytest.raises(SystemExit):
+        apply_override(cfg, "novalue")
