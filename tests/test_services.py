@@ -270,11 +270,8 @@ def test_shield_with_the_real_qp_matches_a_direct_call(tmp_path, bus):
     th.join(5)
 
 
-def test_shield_window_closes_once_every_actor_asked(tmp_path, bus):
-    # A 60 s window would outlast the 5 s request timeout: the answers only
-    # arrive because the window closes when one request per actor is queued.
-    cfg = make_cfg(tmp_path, shield=ShieldConfig(max_batch=1000, window_s=60.0))
-    cfg.actors = 2
+def _spy_shield(cfg, bus):
+    """A running shield whose solver records each batch size."""
     calls = []
 
     def spy_solve(*args):
@@ -286,19 +283,32 @@ def test_shield_window_closes_once_every_actor_asked(tmp_path, bus):
     th = threading.Thread(target=shield.run, daemon=True)
     th.start()
     wait_for(lambda: shield.state == "running")
-    calls.clear()
-    reqs = [_req(n, s) for s, n in enumerate((2, 3))]
-    replies = [None, None]
+    calls.clear()  # drop the warm-up solve
+    return calls, stop, th
+
+
+def _ask_concurrently(cfg, bus, reqs):
+    replies = [None] * len(reqs)
 
     def ask(i):
         p = wire.encode("shield_req", reqs[i], run_id=cfg.run_id, sender=f"actor/{i}", seq=0)
         replies[i] = bus.request(keys.shield(cfg.run_id), p, timeout=5.0)
 
-    ts = [threading.Thread(target=ask, args=(i,)) for i in range(2)]
+    ts = [threading.Thread(target=ask, args=(i,)) for i in range(len(reqs))]
     for t in ts:
         t.start()
     for t in ts:
         t.join()
+    return replies
+
+
+def test_shield_window_closes_once_every_actor_asked(tmp_path, bus):
+    # A 60 s window would outlast the 5 s request timeout: the answers only
+    # arrive because the window closes when one request per actor is queued.
+    cfg = make_cfg(tmp_path, shield=ShieldConfig(max_batch=1000, window_s=60.0))
+    cfg.actors = 2
+    calls, stop, th = _spy_shield(cfg, bus)
+    replies = _ask_concurrently(cfg, bus, [_req(n, s) for s, n in enumerate((2, 3))])
     stop.set()
     th.join(timeout=5)
     assert all(r is not None and r.ok is not None for r in replies)
