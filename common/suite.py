@@ -29,6 +29,7 @@ class SuiteConfig:
     minutes_per_run: float = 5.0
     eval_episodes: int = 20
     envs_per_actor: int = 16
+    train_overrides: list[str] = field(default_factory=list)   # `sage train --set` items
     workers: int = max(1, os.cpu_count() or 1)
     out_dir: str = "results/suite"
 
@@ -57,7 +58,7 @@ def train_command(cfg: SuiteConfig, spec: RunSpec, run_dir: Path) -> list[str]:
         "--method", spec.method, "--scenario", spec.scenario, "--seed", str(spec.seed),
         "--minutes", str(cfg.minutes_per_run), "--envs-per-actor", str(cfg.envs_per_actor),
         "--eval-episodes", str(cfg.eval_episodes), "--run-dir", str(run_dir), "--quiet",
-    ]
+    ] + [arg for item in cfg.train_overrides for arg in ("--set", item)]
 
 
 def collect_result(spec: RunSpec, run_dir: Path, budget: dict) -> dict:
@@ -114,7 +115,8 @@ def run_suite(cfg: SuiteConfig, log=print) -> list[Path]:
                 log(f"suite: {spec.name} FAILED (exit {proc.returncode}); see {run_dir}.log")
                 continue
             budget = {"minutes": cfg.minutes_per_run, "wall_s": round(time.time() - started, 1),
-                      "envs_per_actor": cfg.envs_per_actor, "eval_episodes": cfg.eval_episodes}
+                      "envs_per_actor": cfg.envs_per_actor, "eval_episodes": cfg.eval_episodes,
+                      "overrides": list(cfg.train_overrides)}
             record = collect_result(spec, run_dir, budget)
             path = out / f"{spec.name}.json"
             tmp = path.with_suffix(".json.tmp")

@@ -14,6 +14,8 @@ def register(commands, bench) -> None:
     p.add_argument("--minutes-per-run", type=float, default=5.0)
     p.add_argument("--eval-episodes", type=int, default=20)
     p.add_argument("--envs-per-actor", type=int, default=16)
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="passed to every `sage train` (e.g. --set algo.actor_lr=1e-3)")
     p.add_argument("--workers", type=int, default=None, help="parallel runs (default: cores)")
     p.add_argument("--out", default="results/suite")
     p.set_defaults(func=_suite)
@@ -52,6 +54,7 @@ def _suite(args: argparse.Namespace) -> int:
         methods=args.methods.split(","), scenarios=_scenarios(args.scenarios),
         seeds=[int(s) for s in args.seeds.split(",")], minutes_per_run=args.minutes_per_run,
         eval_episodes=args.eval_episodes, envs_per_actor=args.envs_per_actor, out_dir=args.out,
+        train_overrides=list(args.set),
     )
     if args.workers:
         cfg.workers = args.workers
