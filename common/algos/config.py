@@ -8,10 +8,13 @@ from dataclasses import asdict, dataclass, fields
 @dataclass
 class AlgoConfig:
     # optimisation
-    actor_lr: float = 3e-4
+    # Tuned on narrow_gate, 2 cores (docs/results_narrow_gate.md): the update cost is
+    # dominated by per-minibatch overhead (autograd calls, TALO HVP), so few large minibatches;
+    # 1e-3 lets the leaf controllers move within a 4-minute budget.
+    actor_lr: float = 1e-3
     critic_lr: float = 1e-3
-    epochs: int = 5
-    minibatches: int = 4
+    epochs: int = 4
+    minibatches: int = 2
     clip: float = 0.2                 # epsilon_clip of Eq. (ppo_surrogates)
     gamma: float = 0.99
     gae_lambda: float = 0.95

@@ -244,6 +244,10 @@ class LearnerService(Service):
 
     # ------------------------------------------------------------- loop
     def run(self) -> int:
+        if self.cfg.torch_threads:
+            import torch  # process-wide setting: in-process the actor threads share it
+
+            torch.set_num_threads(self.cfg.torch_threads)
         if self.method is None:
             self.method = _default_method(self.cfg)
         self.log_rows = MetricsLog(self.run_dir)
