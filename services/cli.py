@@ -14,7 +14,8 @@ def register(commands, bench) -> None:
     p = commands.add_parser("train", help="train a method with actor/shield/learner services")
     p.add_argument("--scenario", default=d.scenario)
     p.add_argument("--method", default=d.method, choices=METHODS)
-    p.add_argument("--updates", type=int, default=d.updates, help="learner updates (budget)")
+    p.add_argument("--updates", type=int, default=None,
+                   help=f"learner updates (budget; default {d.updates}, or unlimited when --minutes is given)")
     p.add_argument("--minutes", type=float, default=d.minutes, help="wall-clock budget (whichever first)")
     p.add_argument("--actors", type=int, default=d.actors)
     p.add_argument("--envs-per-actor", type=int, default=d.envs_per_actor)
@@ -38,7 +39,13 @@ def register(commands, bench) -> None:
 
 def config_from_args(args) -> TrainConfig:
     cfg = TrainConfig.load(args.config) if args.config else TrainConfig()
-    cfg.scenario, cfg.method, cfg.updates, cfg.minutes = args.scenario, args.method, args.updates, args.minutes
+    if args.updates is not None:
+        updates = args.updates
+    elif args.minutes:
+        updates = 10**9  # a wall-clock budget alone: train until the minutes are spent
+    else:
+        updates = cfg.updates
+    cfg.scenario, cfg.method, cfg.updates, cfg.minutes = args.scenario, args.method, updates, args.minutes
     cfg.actors, cfg.envs_per_actor, cfg.chunk_len = args.actors, args.envs_per_actor, args.chunk_len
     cfg.max_lag, cfg.seed, cfg.mode, cfg.eval_episodes = args.max_lag, args.seed, args.mode, args.eval_episodes
     cfg.ports.inprocess = args.metrics_port
