@@ -27,11 +27,27 @@ CARRIER_RADIUS = 0.25
 GRASP_LOCAL = np.array([[0.8, 0.0], [-0.8, 0.0], [0.0, -0.4]])
 # carrier yaw relative to the payload when in formation: each faces the payload centre
 FACING = np.array([math.pi, 0.0, math.pi / 2])
-# payload boundary points for clearance and safety rows: corners and edge midpoints
-PAYLOAD_POINTS_LOCAL = np.array(
-    [[0.8, 0.4], [0.0, 0.4], [-0.8, 0.4], [-0.8, -0.4], [0.0, -0.4], [0.8, -0.4],
-     [0.8, 0.0], [-0.8, 0.0]]
-)
+# Spacing of the payload boundary points. A wall corner can slip between two
+# points by at most half the spacing (90-degree corner), so the spacing must stay
+# below 2 * SafetyConfig.payload_margin (0.05 m) for the payload-wall rows to
+# keep thin gate posts out of the board's edges. With the first sampling
+# (corners and edge midpoints, 0.8 m apart) a 0.2 m gate post passed between
+# the points and shielded policies scraped the payload along it.
+PAYLOAD_POINT_SPACING = 0.08
+
+
+def perimeter_points(half_x: float, half_y: float, spacing: float) -> np.ndarray:
+    """Points around a rectangle's boundary, corners included, at most ``spacing`` apart."""
+    corners = np.array([[half_x, half_y], [-half_x, half_y], [-half_x, -half_y], [half_x, -half_y]])
+    pts = []
+    for a, b in zip(corners, np.roll(corners, -1, axis=0)):
+        n = max(1, int(math.ceil(np.linalg.norm(b - a) / spacing - 1e-9)))
+        pts += [a + (b - a) * t for t in np.arange(n) / n]
+    return np.array(pts)
+
+
+# payload boundary points for clearance and safety rows
+PAYLOAD_POINTS_LOCAL = perimeter_points(0.8, 0.4, PAYLOAD_POINT_SPACING)
 # pairs (0,1), (0,2), (1,2) as in common/env/safety.py
 PAIRS = ((0, 1), (0, 2), (1, 2))
 PAIR_REST = np.array([np.linalg.norm(GRASP_LOCAL[i] - GRASP_LOCAL[j]) for i, j in PAIRS])
