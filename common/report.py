@@ -216,7 +216,7 @@ def write_figures(results: list[Result], summary: dict, out_dir: Path) -> list[P
 
     # Fig. reward_drop: training curves of return and drop rate.
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
-    for key, ax, title in (("return_mean", axes[0], "(a) episode return"), ("drop_rate", axes[1], "(b) drop rate")):
+    for key, ax, title in (("episode_return", axes[0], "(a) episode return"), ("drop_rate", axes[1], "(b) drop rate")):
         for m in methods:
             g, mu, sd = _curves(results, m, key)
             ax.plot(g, mu, color=colors[m], label=METHOD_TITLES[m]); ax.fill_between(g, mu - sd, mu + sd, color=colors[m], alpha=0.15)

@@ -21,6 +21,13 @@ from pathlib import Path
 from common.report import FAMILIES, METHODS
 
 
+# report curve key <- learner metrics.jsonl key (episodes finished during that update)
+CURVE_KEYS = {
+    "episode_return": "ep_return_mean", "drop_rate": "ep_drop_mean", "success_rate": "ep_success_mean",
+    "proposal_violation": "proposal_violation_rate", "correction": "correction_mean",
+}
+
+
 @dataclass
 class SuiteConfig:
     methods: list[str] = field(default_factory=lambda: list(METHODS))
@@ -77,6 +84,10 @@ def collect_result(spec: RunSpec, run_dir: Path, budget: dict) -> dict:
         for r in rows:
             point = dict(r)
             point.setdefault("progress", r.get("env_steps", 0) / total)
+            # the report's curve names <- the learner's metric names
+            for name, source in CURVE_KEYS.items():
+                if source in r:
+                    point[name] = r[source]
             curve.append(point)
     return {
         "method": spec.method, "scenario": spec.scenario, "seed": spec.seed,
