@@ -50,6 +50,11 @@ EVAL_KEYS = [
     "tilt", "heading_error", "height_error", "completion_time",
 ]
 RESULT_KEYS = ["method", "scenario", "seed", "eval", "train_curve", "budget"]
+# report curve key <- learner metrics.jsonl key (episodes finished during that update)
+CURVE_KEYS = {
+    "episode_return": "ep_return_mean", "drop_rate": "ep_drop_mean", "success_rate": "ep_success_mean",
+    "proposal_violation": "proposal_violation_rate", "correction": "correction_mean",
+}
 SHIELDED = {"happo": False, "happo_cbf": True, "talo_cbf": True, "sail_cbf": True, "sage": True}
 
 
@@ -168,7 +173,7 @@ def _curves(results: list[Result], method: str, key: str) -> tuple[np.ndarray, n
     for r in results:
         if r.method != method or not r.train_curve:
             continue
-        pts = [(p.get("progress"), p.get(key)) for p in r.train_curve]
+        pts = [(p.get("progress"), p.get(key, p.get(CURVE_KEYS.get(key, key)))) for p in r.train_curve]
         pts = [(x, y) for x, y in pts if x is not None and y is not None and np.isfinite(y)]
         if len(pts) < 2:
             continue

@@ -18,14 +18,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from common.report import FAMILIES, METHODS
-
-
-# report curve key <- learner metrics.jsonl key (episodes finished during that update)
-CURVE_KEYS = {
-    "episode_return": "ep_return_mean", "drop_rate": "ep_drop_mean", "success_rate": "ep_success_mean",
-    "proposal_violation": "proposal_violation_rate", "correction": "correction_mean",
-}
+from common.report import CURVE_KEYS, FAMILIES, METHODS
 
 
 @dataclass
