@@ -100,6 +100,20 @@ def cell(results: list[Result], method: str, scenario: str, key: str) -> float:
     return _mean([r.eval.get(key) for r in results if r.method == method and r.scenario == scenario])
 
 
+def training_exposure(r: Result) -> dict:
+    """Collision steps per 1000 env steps and drop rate over the whole training
+    run, from the learner's per-update episode metrics (what the robots went
+    through while learning, as opposed to the deployment evaluation)."""
+    rows = [p for p in r.train_curve if "episodes" in p]
+    eps = sum(p.get("episodes", 0) for p in rows)
+    steps = max((p.get("env_steps", 0) for p in rows), default=0)
+    col = sum(p.get("ep_collision_steps_mean", 0.0) * p.get("episodes", 0) for p in rows)
+    drops = sum(p.get("ep_drop_mean", 0.0) * p.get("episodes", 0) for p in rows)
+    nan = float("nan")
+    return {"train_col_per_1k": 1000.0 * col / steps if steps else nan,
+            "train_drop_rate": drops / eps if eps else nan, "train_env_steps": steps}
+
+
 def summarize(results: list[Result]) -> dict:
     """Nested summary: per scenario, per family, overall, for each method present."""
     methods = [m for m in METHODS if any(r.method == m for r in results)]
@@ -124,6 +138,9 @@ def summarize(results: list[Result]) -> dict:
             for k in EVAL_KEYS
         }
         out["overall"][m]["runs"] = len(runs)
+        exposure = [training_exposure(r) for r in runs]
+        for k in ("train_col_per_1k", "train_drop_rate", "train_env_steps"):
+            out["overall"][m][k] = {"mean": _mean([e[k] for e in exposure]), "std": _std([e[k] for e in exposure])}
     return out
 
 
@@ -161,6 +178,13 @@ def table_markdown(summary: dict) -> str:
         corr = pm("correction", 1, 3) if SHIELDED[m] else "N/A"
         lines.append(f"| {METHOD_TITLES[m]} | {o['runs']} | {pm('success_rate', 100)} | {pm('return_mean', 1, 2)} | "
                      f"{pm('col_per_1k')} | {pm('drop_rate', 100)} | {viol} | {corr} |")
+    lines += ["", "### During training (same budget; collision steps and drops the carriers went through while learning)", "",
+              "| Method | Env steps | Col./1k | DR (%) |", "|---|---|---|---|"]
+    for m in methods:
+        o = summary["overall"][m]
+        lines.append(f"| {METHOD_TITLES[m]} | {_fmt(o['train_env_steps']['mean'], 0)} | "
+                     f"{_fmt(o['train_col_per_1k']['mean'], 2)} ± {_fmt(o['train_col_per_1k']['std'], 2)} | "
+                     f"{_fmt(o['train_drop_rate']['mean'], 1, 100)} ± {_fmt(o['train_drop_rate']['std'], 1, 100)} |")
     return "\n".join(lines) + "\n"
 
 

@@ -54,3 +54,14 @@ def test_malformed_result_names_file(tmp_path):
     bad.write_text(json.dumps({"method": "happo"}))
     with pytest.raises(ValueError, match="bad.json"):
         load_results([bad])
+
+
+def test_training_exposure_pools_episodes_over_updates():
+    from common.report import Result, training_exposure
+
+    curve = [{"env_steps": 1000, "episodes": 4, "ep_collision_steps_mean": 2.0, "ep_drop_mean": 0.5},
+             {"env_steps": 2000, "episodes": 6, "ep_collision_steps_mean": 0.0, "ep_drop_mean": 0.0}]
+    r = Result("happo", "maze", 0, {}, curve, {})
+    e = training_exposure(r)
+    assert e["train_col_per_1k"] == pytest.approx(1000 * 8 / 2000)
+    assert e["train_drop_rate"] == pytest.approx(2 / 10)
