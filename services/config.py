@@ -73,7 +73,7 @@ class TrainConfig:
     envs_per_actor: int = 32           # K
     chunk_len: int = 32                # T: steps per trajectory chunk
     chunks_per_update: int = 0         # 0 -> one chunk per actor
-    updates: int = 10                  # budget in learner updates ...
+    updates: int = 100                 # budget in learner updates (~4 min on 2 cores: SAGE on narrow_gate learns to succeed) ...
     minutes: float | None = None       # ... or wall-clock minutes (whichever first)
     max_lag: int = 1                   # accept chunks from versions >= current - max_lag
     seed: int = 0
