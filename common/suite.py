@@ -28,7 +28,7 @@ class SuiteConfig:
     seeds: list[int] = field(default_factory=lambda: [0, 1])
     minutes_per_run: float = 5.0
     eval_episodes: int = 20
-    envs_per_actor: int = 16
+    envs_per_actor: int = 32
     train_overrides: list[str] = field(default_factory=list)   # `sage train --set` items
     workers: int = max(1, os.cpu_count() or 1)
     out_dir: str = "results/suite"

@@ -13,7 +13,7 @@ def register(commands, bench) -> None:
     p.add_argument("--seeds", default="0,1")
     p.add_argument("--minutes-per-run", type=float, default=5.0)
     p.add_argument("--eval-episodes", type=int, default=20)
-    p.add_argument("--envs-per-actor", type=int, default=16)
+    p.add_argument("--envs-per-actor", type=int, default=32)
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="passed to every `sage train` (e.g. --set algo.actor_lr=1e-3)")
     p.add_argument("--workers", type=int, default=None, help="parallel runs (default: cores)")

@@ -28,10 +28,10 @@ def test_train_overrides_reach_the_resolved_config(tmp_path):
     from services.config import TrainConfig
 
     cfg = TrainConfig()
-    apply_override(cfg, "algo.actor_lr=0.001")
+    apply_override(cfg, "algo.actor_lr=0.0007")
     apply_override(cfg, "env.human_slot=2")
     apply_override(cfg, "shield.window_s=0.0005")
-    assert cfg.algo_config().actor_lr == 0.001
+    assert cfg.algo_config().actor_lr == 0.0007 != TrainConfig().algo_config().actor_lr
     assert cfg.env_config().human_slot == 2
     assert cfg.shield.window_s == 0.0005
     with pytest.raises(SystemExit):
