@@ -46,7 +46,7 @@ RATIO_TARGET = 0.7
 class SystemBenchConfig:
     scenario: str = "narrow_gate"
     method: str = "happo_cbf"          # shielded, with the cheapest learner update
-    envs_per_actor: int = 4
+    envs_per_actor: int = 32           # the training default (services.config.TrainConfig)
     chunk_len: int = 16
     actor_counts: tuple[int, ...] = (1, 2)
     warmup_s: float = 2.0              # after every actor stepped, before measuring
