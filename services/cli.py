@@ -95,6 +95,11 @@ def cmd_train(args) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     cfg = config_from_args(args)
     run = Path(cfg.run_dir)
+    clash = _resume_clash(run, cfg)
+    if clash:
+        print(f"sage train: {run} holds a run of {clash}; the learner would resume its checkpoints. "
+              "Use another --run-dir (or the same method and scenario to resume).", file=sys.stderr)
+        return 2
     cfg_path = cfg.save(run / "config.json")
     print(f"run {cfg.run_id}: {cfg.method} on {cfg.scenario}, {cfg.actors} actor(s) x {cfg.envs_per_actor} envs, "
           f"mode {cfg.mode}, run dir {run}", file=sys.stderr)
@@ -129,6 +134,20 @@ def cmd_train(args) -> int:
     print(json.dumps({"run_dir": str(run), "version": summary.get("version"),
                       "updates": summary.get("updates")}))
     return 0
+
+
+def _resume_clash(run: Path, cfg: TrainConfig) -> str | None:
+    """What an existing run directory holds when it cannot be resumed by ``cfg``."""
+    old = run / "config.json"
+    if not old.exists():
+        return None
+    try:
+        prev = json.loads(old.read_text())
+    except json.JSONDecodeError:
+        return "an unreadable config.json"
+    if (prev.get("method"), prev.get("scenario")) != (cfg.method, cfg.scenario):
+        return f"method {prev.get('method')!r} on {prev.get('scenario')!r}"
+    return None
 
 
 def _params_from_checkpoint(cfg: TrainConfig, ck: dict) -> dict:

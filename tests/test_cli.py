@@ -38,3 +38,13 @@ def test_train_overrides_reach_the_resolved_config(tmp_path):
         apply_override(cfg, "shield.no_such_field=1")
     with pytest.raises(SystemExit):
         apply_override(cfg, "novalue")
+
+
+def test_train_refuses_a_run_dir_of_another_method(tmp_path, capsys):
+    import json
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps({"method": "sage", "scenario": "narrow_gate"}))
+    assert main(["train", "--method", "happo", "--run-dir", str(run), "--updates", "1", "--quiet"]) == 2
+    assert "holds a run of method 'sage'" in capsys.readouterr().err
