@@ -201,6 +201,23 @@ def _gi_solve(y0, NT, b, norms, mg, bvar, bsign, m, n, tol, dep_tol, max_iter,
 
 
 @njit(cache=True)
+def _append_box_rows(m, nf, free, lo, hi, bvar, bsign, bvec, norms):
+    """The box as ordinary bound rows from slot ``m`` on: x_k ≥ lo_k and −x_k ≥ −hi_k
+    for every free variable k. Returns the next free slot."""
+    for kk in range(nf):
+        bvar[m] = kk
+        bsign[m] = 1.0
+        bvec[m] = lo[free[kk]]
+        norms[m] = 1.0
+        bvar[m + 1] = kk
+        bsign[m + 1] = -1.0
+        bvec[m + 1] = -hi[free[kk]]
+        norms[m + 1] = 1.0
+        m += 2
+    return m
+
+
+@njit(cache=True)
 def solve_batch_active_set(a, C, c, row_mask, fixed, lo, hi, tol, dep_tol, zero_tol,
                            max_iter, rho, x_out, status, iters):
     """Solve B projections Eq. (qpshield) with the box and fixed variables.
@@ -274,17 +291,7 @@ def solve_batch_active_set(a, C, c, row_mask, fixed, lo, hi, tol, dep_tol, zero_
         code = _GI_INFEASIBLE
         it = 0
         if not zero_violated:
-            m = mr
-            for kk in range(nf):  # box as ordinary rows: x_k ≥ lo_k and −x_k ≥ −hi_k
-                bvar[m] = kk
-                bsign[m] = 1.0
-                bvec[m] = lo[bi, free[kk]]
-                norms[m] = 1.0
-                bvar[m + 1] = kk
-                bsign[m + 1] = -1.0
-                bvec[m + 1] = -hi[bi, free[kk]]
-                norms[m + 1] = 1.0
-                m += 2
+            m = _append_box_rows(mr, nf, free, lo[bi], hi[bi], bvar, bsign, bvec, norms)
             code, it, q = _gi_solve(y0, NT, bvec, norms, mr, bvar, bsign, m, nf, tol, dep_tol,
                                     max_iter, y, JT, R, u, act, in_act, dvec, z, r, sres)
         if code == _GI_INFEASIBLE:
@@ -307,16 +314,7 @@ def solve_batch_active_set(a, C, c, row_mask, fixed, lo, hi, tol, dep_tol, zero_
                 bvec[m] = 0.0
                 norms[m] = 1.0
                 m += 1
-            for kk in range(nf):
-                bvar[m] = kk
-                bsign[m] = 1.0
-                bvec[m] = lo[bi, free[kk]]
-                norms[m] = 1.0
-                bvar[m + 1] = kk
-                bsign[m + 1] = -1.0
-                bvec[m + 1] = -hi[bi, free[kk]]
-                norms[m + 1] = 1.0
-                m += 2
+            m = _append_box_rows(m, nf, free, lo[bi], hi[bi], bvar, bsign, bvec, norms)
             code2, it2, q = _gi_solve(y0, NT, bvec, norms, mr, bvar, bsign, m, n2, tol, dep_tol,
                                       max_iter, y, JT, R, u, act, in_act, dvec, z, r, sres)
             it += it2
