@@ -16,13 +16,7 @@ from common.talo import individual_gradient, talo_gap, unflatten_like
 OBS = 6
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """2 shared CPU cores: intra-op threads only oversubscribe."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def small_batch(method, seed=0, T=6, K=8, human_rate=0.2, progress=0.5):

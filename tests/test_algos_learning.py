@@ -12,12 +12,7 @@ from common.algos.synthetic import BanditTask, collect
 OBS, UPDATES = 6, 20
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.mark.parametrize("name", ["sage", "happo"])

@@ -98,30 +98,9 @@ def _req(n, seed):
 def test_shield_micro_batches_and_replies_per_request(tmp_path, bus):
     cfg = make_cfg(tmp_path, shield=ShieldConfig(max_batch=10, window_s=2.0))
     cfg.actors = 4  # four askers: the window may close once all four are queued
-    calls = []
-
-    def spy_solve(*args):
-        calls.append(args[0].shape[0])
-        return fake_solve(*args)
-
-    stop = threading.Event()
-    shield = ShieldService(cfg, bus, stop=stop, solve=spy_solve)
-    th = threading.Thread(target=shield.run, daemon=True)
-    th.start()
-    wait_for(lambda: shield.state == "running")
-    calls.clear()  # drop the warm-up solve
+    calls, stop, th, shield = _spy_shield(cfg, bus)
     reqs = [_req(n, s) for s, n in enumerate((1, 3, 2, 4))]
-    replies = [None] * len(reqs)
-
-    def ask(i):
-        p = wire.encode("shield_req", reqs[i], run_id=cfg.run_id, sender=f"actor/{i}", seq=0)
-        replies[i] = bus.request(keys.shield(cfg.run_id), p, timeout=5.0)
-
-    ts = [threading.Thread(target=ask, args=(i,)) for i in range(len(reqs))]
-    for t in ts:
-        t.start()
-    for t in ts:
-        t.join()
+    replies = _ask_concurrently(cfg, bus, reqs)
     for r, rep in zip(reqs, replies):
         body = wire.decode(rep.ok, run_id=cfg.run_id, expect="shield_rep").body
         np.testing.assert_allclose(body["a_exec"], fake_solve(*r.values()).a_exec)
@@ -284,7 +263,7 @@ def _spy_shield(cfg, bus):
     th.start()
     wait_for(lambda: shield.state == "running")
     calls.clear()  # drop the warm-up solve
-    return calls, stop, th
+    return calls, stop, th, shield
 
 
 def _ask_concurrently(cfg, bus, reqs):
@@ -307,7 +286,7 @@ def test_shield_window_closes_once_every_actor_asked(tmp_path, bus):
     # arrive because the window closes when one request per actor is queued.
     cfg = make_cfg(tmp_path, shield=ShieldConfig(max_batch=1000, window_s=60.0))
     cfg.actors = 2
-    calls, stop, th = _spy_shield(cfg, bus)
+    calls, stop, th, _ = _spy_shield(cfg, bus)
     replies = _ask_concurrently(cfg, bus, [_req(n, s) for s, n in enumerate((2, 3))])
     stop.set()
     th.join(timeout=5)
