@@ -45,8 +45,7 @@ def load_run(path: str | Path):
             raise FileNotFoundError(f"{p}: no loadable checkpoint under checkpoints/")
     else:
         ck = load_checkpoint(p)
-        cfg = TrainConfig.from_json(ck["config"]) if hasattr(TrainConfig, "from_json") else \
-            TrainConfig.load(p.parent.parent / "config.json")
+        cfg = TrainConfig.from_dict(json.loads(ck["config"]))  # the learner stores its resolved config
     return cfg, _params_from_checkpoint(cfg, ck), int(ck["version"])
 
 

@@ -46,3 +46,9 @@ def test_suite_runs_reports_and_resumes(tmp_path):
     assert run_suite(cfg, log=lambda *_: None) == []  # resumable: nothing left to run
     report = write_report(written, tmp_path / "report")
     assert report["runs"] == 1
+
+
+def test_eval_accepts_a_checkpoint_file(tiny_run, capsys):
+    ckpt = sorted((tiny_run / "checkpoints").glob("ckpt_*.pt"))[-1]
+    assert main(["eval", str(ckpt), "--episodes", "1", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["method"] == "sage"
