@@ -27,6 +27,10 @@ class SuiteConfig:
     scenarios: list[str] = field(default_factory=lambda: [s for f in FAMILIES.values() for s in f])
     seeds: list[int] = field(default_factory=lambda: [0, 1])
     minutes_per_run: float = 5.0
+    # A sample budget (learner updates) makes methods comparable on a loaded machine,
+    # where a wall-clock budget gives the slower updates fewer samples; both may be set
+    # (whichever ends first).
+    updates_per_run: int | None = None
     eval_episodes: int = 20
     envs_per_actor: int = 32
     train_overrides: list[str] = field(default_factory=list)   # `sage train --set` items
@@ -53,12 +57,13 @@ def plan(cfg: SuiteConfig) -> list[RunSpec]:
 
 
 def train_command(cfg: SuiteConfig, spec: RunSpec, run_dir: Path) -> list[str]:
+    updates = ["--updates", str(cfg.updates_per_run)] if cfg.updates_per_run else []
     return [
         sys.executable, "-m", "common.cli", "train",
         "--method", spec.method, "--scenario", spec.scenario, "--seed", str(spec.seed),
         "--minutes", str(cfg.minutes_per_run), "--envs-per-actor", str(cfg.envs_per_actor),
         "--eval-episodes", str(cfg.eval_episodes), "--run-dir", str(run_dir), "--quiet",
-    ] + [arg for item in cfg.train_overrides for arg in ("--set", item)]
+    ] + updates + [arg for item in cfg.train_overrides for arg in ("--set", item)]
 
 
 def collect_result(spec: RunSpec, run_dir: Path, budget: dict) -> dict:
@@ -118,7 +123,8 @@ def run_suite(cfg: SuiteConfig, log=print) -> list[Path]:
                 failures += 1
                 log(f"suite: {spec.name} FAILED (exit {proc.returncode}); see {run_dir}.log")
                 continue
-            budget = {"minutes": cfg.minutes_per_run, "wall_s": round(time.time() - started, 1),
+            budget = {"minutes": cfg.minutes_per_run, "updates": cfg.updates_per_run,
+                      "wall_s": round(time.time() - started, 1),
                       "envs_per_actor": cfg.envs_per_actor, "eval_episodes": cfg.eval_episodes,
                       "overrides": list(cfg.train_overrides)}
             record = collect_result(spec, run_dir, budget)

@@ -12,6 +12,9 @@ def register(commands, bench) -> None:
     p.add_argument("--scenarios", default="all", help="comma list, a family (LCP/STR/CCN) or 'all'")
     p.add_argument("--seeds", default="0,1")
     p.add_argument("--minutes-per-run", type=float, default=5.0)
+    p.add_argument("--updates-per-run", type=int, default=None,
+                   help="learner updates per run (same samples for every method); with "
+                        "--minutes-per-run, whichever ends first")
     p.add_argument("--eval-episodes", type=int, default=20)
     p.add_argument("--envs-per-actor", type=int, default=32)
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
@@ -53,6 +56,7 @@ def _suite(args: argparse.Namespace) -> int:
     cfg = SuiteConfig(
         methods=args.methods.split(","), scenarios=_scenarios(args.scenarios),
         seeds=[int(s) for s in args.seeds.split(",")], minutes_per_run=args.minutes_per_run,
+        updates_per_run=args.updates_per_run,
         eval_episodes=args.eval_episodes, envs_per_actor=args.envs_per_actor, out_dir=args.out,
         train_overrides=list(args.set),
     )

@@ -1,5 +1,6 @@
 """sage train -> sage eval -> sage suite -> sage report on a tiny real run."""
 import json
+from pathlib import Path
 
 import pytest
 
@@ -37,12 +38,16 @@ def test_suite_runs_reports_and_resumes(tmp_path):
     from common.report import write_report
     from common.suite import SuiteConfig, run_suite
 
-    cfg = SuiteConfig(methods=["happo"], scenarios=["narrow_gate"], seeds=[0], minutes_per_run=0.05,
-                      eval_episodes=1, envs_per_actor=2, workers=1, out_dir=str(tmp_path / "suite"))
+    cfg = SuiteConfig(methods=["happo"], scenarios=["narrow_gate"], seeds=[0], minutes_per_run=5.0,
+                      updates_per_run=2, eval_episodes=1, envs_per_actor=2, workers=1,
+                      out_dir=str(tmp_path / "suite"))
     written = run_suite(cfg, log=lambda *_: None)
     assert len(written) == 1
     result = json.loads(written[0].read_text())
     assert result["method"] == "happo" and set(EVAL_KEYS) <= set(result["eval"])
+    # the sample budget ended the run, not the 5-minute cap
+    summary = json.loads((Path(result["run_dir"]) / "summary.json").read_text())
+    assert summary["updates"] == 2 and result["budget"]["updates"] == 2
     assert run_suite(cfg, log=lambda *_: None) == []  # resumable: nothing left to run
     report = write_report(written, tmp_path / "report")
     assert report["runs"] == 1
