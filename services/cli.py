@@ -116,7 +116,8 @@ def cmd_train(args) -> int:
 
         ck = load_latest(run / "checkpoints")
         params = _params_from_checkpoint(cfg, ck) if ck else None
-        summary = {"mode": "supervised", "version": int(ck["version"]) if ck else None}
+        summary = {"mode": "supervised", "version": int(ck["version"]) if ck else None,
+                   **_last_progress(run / "metrics.jsonl")}
     else:
         from services.inprocess import run_inprocess
 
@@ -134,6 +135,21 @@ def cmd_train(args) -> int:
     print(json.dumps({"run_dir": str(run), "version": summary.get("version"),
                       "updates": summary.get("updates")}))
     return 0
+
+
+def _last_progress(metrics_path: Path) -> dict:
+    """Updates and env steps from the learner's last metrics row (the supervised
+    learner runs in another process, so its counters reach us through its log)."""
+    last = None
+    if metrics_path.exists():
+        for line in metrics_path.read_text().splitlines():
+            try:
+                last = json.loads(line)
+            except json.JSONDecodeError:
+                continue  # a line cut short by a killed learner
+    if not last:
+        return {}
+    return {"updates": last.get("update"), "env_steps": last.get("env_steps")}
 
 
 def _resume_clash(run: Path, cfg: TrainConfig) -> str | None:

@@ -350,3 +350,27 @@ def test_supervised_run_survives_a_killed_actor(tmp_path):
     rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) >= 3 and [r["version"] for r in rows] == sorted(r["version"] for r in rows)
     assert list((run / "checkpoints").glob("ckpt_*.pt"))  # the learner checkpointed on SIGTERM
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", ["happo", "sage"])
+def test_sage_train_supervised_runs_the_method_to_its_update_budget(tmp_path, method):
+    """`sage train --mode supervised`: the method's learner, shield and actor run as
+    separate processes, stop at the update budget, and the run is evaluated."""
+    run = tmp_path / "run"
+    proc = subprocess.run([PY, "-m", "common.cli", "train", "--mode", "supervised", "--method", method,
+                           "--updates", "2", "--actors", "1", "--envs-per-actor", "2", "--chunk-len", "8",
+                           "--eval-episodes", "1", "--metrics-port", "0", "--run-dir", str(run), "--quiet"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert json.loads(proc.stdout.strip().splitlines()[-1])["updates"] == 2
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["mode"] == "supervised" and summary["version"] == 2 and summary["eval"]["episodes_finished"] == 1
+    rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [r["update"] for r in rows] == [1, 2]
+    # the method's own diagnostics come from the supervised learner process
+    if method == "sage":
+        assert all("talo_corrected" in r and r["kappa"] > 0 for r in rows)
+    else:
+        assert all("happo_factor_std" in r and r["kappa"] == 0 for r in rows)
+    assert json.loads((run / "config.json").read_text())["method"] == method
