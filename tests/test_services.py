@@ -292,3 +292,15 @@ def test_shield_window_closes_once_every_actor_asked(tmp_path, bus):
     th.join(timeout=5)
     assert all(r is not None and r.ok is not None for r in replies)
     assert sum(calls) == 5
+
+
+def test_episode_summary_gives_the_papers_per_update_safety_figures():
+    from services.learner.service import _episode_summary
+
+    eps = [{"success": 1.0, "return": 10.0, "collision_steps": 3, "length": 100, "drop": 0.0},
+           {"success": 0.0, "return": -2.0, "collision_steps": 0, "length": 200, "drop": 1.0}]
+    out = _episode_summary(eps)
+    assert out["episodes"] == 2 and out["ep_success_mean"] == 0.5
+    assert out["col_per_1k"] == pytest.approx(10.0)   # 3 collision steps in 300 steps
+    assert out["drop_rate"] == 0.5
+    assert _episode_summary([]) == {"episodes": 0}

@@ -76,6 +76,12 @@ def _episode_summary(episodes: list[dict]) -> dict:
         vals = [e[k] for e in episodes if k in e]
         if vals:
             out[f"ep_{k}_mean"] = float(np.mean(vals))
+    # the paper's per-update safety figures over the episodes that ended in this batch
+    steps = sum(e.get("length", 0) for e in episodes)
+    if steps and all("collision_steps" in e for e in episodes):
+        out["col_per_1k"] = 1000.0 * sum(e["collision_steps"] for e in episodes) / steps
+    if "ep_drop_mean" in out:
+        out["drop_rate"] = out["ep_drop_mean"]
     return out
 
 
