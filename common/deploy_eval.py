@@ -22,6 +22,8 @@ def eval_record(e: dict) -> dict:
         if f"{k}_std" in e:
             out[f"{k}_std"] = e[f"{k}_std"]
     out["proposal_violation"] = e.get("proposal_violation_rate")
+    for kind, rate in (e.get("proposal_violation_by_kind") or {}).items():
+        out[f"proposal_violation_{kind}"] = rate
     out["correction"] = e.get("correction_mean")
     out["intervention_rate"] = e.get("intervention_rate")
     out["infeasible_steps"] = e.get("infeasible_steps")

@@ -46,7 +46,7 @@ SCENARIO_TITLES = {
 # Keys every result's "eval" block carries (deployment evaluation).
 EVAL_KEYS = [
     "success_rate", "return_mean", "col_per_1k", "drop_rate",
-    "proposal_violation", "correction",
+    "proposal_violation", "proposal_violation_any_wall", "correction",
     "tilt", "heading_error", "height_error", "completion_time",
 ]
 RESULT_KEYS = ["method", "scenario", "seed", "eval", "train_curve", "budget"]
@@ -167,17 +167,19 @@ def table_markdown(summary: dict) -> str:
             lines.append(f"| {fam} | **{fam} mean** | " + " | ".join(
                 f"**{_fmt(row[m]['success_rate'], scale=100)}** | **{_fmt(row[m]['col_per_1k'])}**" for m in methods) + " |")
     lines += ["", "### Overall (mean ± std across runs)", "",
-              "| Method | Runs | SR (%) | Return | Col./1k | DR (%) | Proposal viol. (%) | Correction |",
-              "|---|---|---|---|---|---|---|---|"]
+              "| Method | Runs | SR (%) | Return | Col./1k | DR (%) | Proposal viol. (%) | of which wall rows (%) "
+              "| Correction |",
+              "|---|---|---|---|---|---|---|---|---|"]
     for m in methods:
         o = summary["overall"][m]
 
         def pm(key, scale=1.0, digits=1):
             return f"{_fmt(o[key]['mean'], digits, scale)} ± {_fmt(o[key]['std'], digits, scale)}"
         viol = pm("proposal_violation", 100) if SHIELDED[m] else "N/A"
+        wall_viol = pm("proposal_violation_any_wall", 100) if SHIELDED[m] else "N/A"
         corr = pm("correction", 1, 3) if SHIELDED[m] else "N/A"
         lines.append(f"| {METHOD_TITLES[m]} | {o['runs']} | {pm('success_rate', 100)} | {pm('return_mean', 1, 2)} | "
-                     f"{pm('col_per_1k')} | {pm('drop_rate', 100)} | {viol} | {corr} |")
+                     f"{pm('col_per_1k')} | {pm('drop_rate', 100)} | {viol} | {wall_viol} | {corr} |")
     lines += ["", "### During training (same budget; collision steps and drops the carriers went through while learning)", "",
               "| Method | Env steps | Col./1k | DR (%) |", "|---|---|---|---|"]
     for m in methods:

@@ -57,3 +57,21 @@ def test_eval_accepts_a_checkpoint_file(tiny_run, capsys):
     ckpt = sorted((tiny_run / "checkpoints").glob("ckpt_*.pt"))[-1]
     assert main(["eval", str(ckpt), "--episodes", "1", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["method"] == "sage"
+
+
+def test_proposal_violation_is_split_by_row_kind():
+    from common.evaluation import evaluate_policy
+    from services.config import TrainConfig
+    from services.learner.service import _default_method
+
+    cfg = TrainConfig(run_id="t", method="sage").resolve()
+    params = _default_method(cfg).policy_params()   # untrained trees: most proposals violate a row
+    res = evaluate_policy(params, cfg.env_config(), 2, seed=3, shielded=True, max_steps=40)
+    by_kind = res["proposal_violation_by_kind"]
+    assert set(by_kind) == {"carrier_wall", "payload_wall", "formation", "any_wall"}
+    assert all(0.0 <= v <= 1.0 for v in by_kind.values())
+    # a step violates some row iff it violates a row of some kind
+    kinds = [by_kind[k] for k in ("carrier_wall", "payload_wall", "formation")]
+    assert max(kinds) <= res["proposal_violation_rate"] <= sum(kinds) + 1e-12
+    assert max(kinds[:2]) <= by_kind["any_wall"] <= sum(kinds[:2]) + 1e-12
+    assert res["proposal_violation_rate"] > 0
