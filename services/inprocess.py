@@ -13,6 +13,7 @@ from prometheus_client import CollectorRegistry
 
 from common import keys
 from common.metrics_prom import serve_metrics
+from common.status import status_line
 from common.transport import Bus
 from services.actor.service import ActorService
 from services.config import TrainConfig
@@ -40,21 +41,7 @@ class StatusBoard:
     def line(self) -> str:
         with self._lock:
             st = dict(self.latest)
-        actors = [b for k, b in st.items() if k.startswith("actor/")]
-        sps = sum(b["env_steps_per_s"] for b in actors)
-        srs = [b["success_rate"] for b in actors if b["success_rate"] is not None]
-        learner = st.get("learner/0", {})
-        shield = st.get("shield/0", {})
-        p99 = shield.get("shield_p99_s")
-        unhealthy = [k for k, b in st.items() if b["state"] == "unhealthy"]
-        parts = [f"steps/s {sps:7.1f}",
-                 f"SR {sum(srs) / len(srs):.2f}" if srs else "SR  -  ",
-                 f"version {learner.get('version', -1)}",
-                 f"updates {learner.get('updates', 0)}",
-                 f"shield p99 {p99 * 1e3:.2f} ms" if p99 is not None else "shield p99 -"]
-        if unhealthy:
-            parts.append("UNHEALTHY " + ",".join(unhealthy))
-        return " | ".join(parts)
+        return status_line(st)  # in one process every member is fresh
 
 
 def run_inprocess(cfg: TrainConfig, *, progress: bool = True, method=None, envs=None,
