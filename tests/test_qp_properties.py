@@ -12,16 +12,44 @@ unit_floats = st.floats(-1.0, 1.0, allow_nan=False, allow_subnormal=False)
 
 @st.composite
 def feasible_problem(draw, max_rows=12):
-    """Rows that a safe action x0 in the box satisfies; proposal anywhere near the box."""
+    """Rows that a safe action x0 in the box satisfies with a Slater margin; proposal
+    anywhere near the box. Without the margin, a row whose free part is ~1e-9 next to
+    an O(1) human block can pin the feasible set to a single point that rounding
+    empties (then the shield fails closed; see the regression test below). Exactly
+    degenerate vertices are covered by the degenerate families of test_qp.py."""
     M = draw(st.integers(1, max_rows))
     x0 = draw(arrays(np.float64, D, elements=st.floats(-0.9, 0.9)))
     C = draw(arrays(np.float64, (M, D), elements=unit_floats))
-    margin = draw(arrays(np.float64, M, elements=st.floats(0.0, 0.5)))
+    margin = draw(arrays(np.float64, M, elements=st.floats(1e-6, 0.5)))
     a = draw(arrays(np.float64, D, elements=st.floats(-1.3, 1.3)))
     mask = draw(arrays(np.bool_, M))
     fixed = draw(arrays(np.bool_, D)) if draw(st.booleans()) else np.zeros(D, bool)
     a = np.where(fixed, x0, a)  # a fixed (human) block consistent with x0 keeps the set nonempty
     return a[None], C[None], (C @ x0 - margin)[None], mask[None], fixed[None]
+
+
+def test_feasible_set_pinned_to_a_point_below_rounding_fails_closed():
+    """Hypothesis found this: a1 is pinned to 0.5 by a row whose only free coefficient
+    is ~1e-9 against a1 <= 0.5; moving a1 by 0.5 to clear a 5e-10 violation. Whatever
+    the solver concludes, it must never call a violating answer optimal, and a
+    fail-closed answer reports the violation it leaves (here the slack QP keeps it:
+    rho * 5e-10**2 is far cheaper than the 0.5 move)."""
+    t = 9.90442294e-10
+    x0 = np.full(D, 0.5)
+    C = np.full((1, 2, D), t)
+    C[0, 0, 1], C[0, 1, 0] = -1.0, 1.0
+    c = np.einsum("bmd,d->bm", C, x0)                   # both rows active at x0 (no margin)
+    a = x0.copy()[None]
+    a[0, 1] = 0.0
+    fixed = np.ones((1, D), bool)
+    fixed[0, 1] = False
+    r = solve_cbf_qp(a, C, c, np.ones((1, 2), bool), fixed)
+    assert (r.a_exec[fixed] == a[fixed]).all() and np.abs(r.a_exec).max() <= 1.0
+    if r.status[0] == STATUS_OPTIMAL:
+        assert qp_violation(r.a_exec, C, c)[0] <= 1e-8
+    else:
+        assert r.status[0] == STATUS_INFEASIBLE
+        assert abs(r.slack[0] - qp_violation(r.a_exec, C, c)[0]) <= 1e-12 and r.slack[0] <= 1e-8
 
 
 @st.composite
