@@ -136,3 +136,20 @@ def test_batch_env_matches_reference_path(name, human, reference_env, monkeypatc
                 assert x[key] == y[key] or (x[key] != x[key] and y[key] != y[key]), key  # NaN == NaN
         n_episodes += len(b.get("episodes", []))
     assert n_episodes >= 6  # resets (time limit and drops) were exercised
+
+
+def test_env_grasp_tol_sets_the_formation_rows():
+    """`--set env.grasp_tol=...` reaches the rows the shield sees: at the same reset
+    state a looser tolerance gives looser formation rows and leaves wall rows alone."""
+    out = {}
+    for tol in (0.05, 0.1):
+        env = batch_env.BatchEnv(EnvConfig(scenario="narrow_gate", grasp_tol=tol), 2, seed=4)
+        assert env.safety_cfg.grasp_tol == tol
+        out[tol] = env.reset()
+    n_form = 2 * len(S.PAIRS)
+    tight, loose = out[0.05], out[0.1]
+    np.testing.assert_array_equal(tight["C"], loose["C"])
+    np.testing.assert_array_equal(tight["c"][:, :-n_form], loose["c"][:, :-n_form])
+    # c = -alpha * h and h grows by the 5 cm of extra tolerance on every formation row
+    alpha = EnvConfig().alpha
+    np.testing.assert_allclose(tight["c"][:, -n_form:] - loose["c"][:, -n_form:], alpha * 0.05, atol=1e-12)

@@ -27,7 +27,7 @@ def safety_config(cfg: EnvConfig):
     from common.env.safety import SafetyConfig
 
     return SafetyConfig(alpha=cfg.alpha, max_rows=cfg.max_rows, carrier_radius=CARRIER_RADIUS + 0.05,
-                        max_step_xy=cfg.max_step_xy, max_step_yaw=cfg.max_step_yaw)
+                        max_step_xy=cfg.max_step_xy, max_step_yaw=cfg.max_step_yaw, grasp_tol=cfg.grasp_tol)
 
 
 class BatchEnv:

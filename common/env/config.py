@@ -100,6 +100,7 @@ class EnvConfig:
     # safety rows (common/env/safety.py)
     max_rows: int = 34
     alpha: float = 0.3                   # discrete CBF rate
+    grasp_tol: float = 0.05              # m of pair-distance deviation the formation rows allow (drop at drop_strain)
     # scripted human partner (human_slot)
     human_noise: float = 0.15            # std of additive action noise
     human_delay: int = 2                 # control steps of reaction delay
