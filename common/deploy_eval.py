@@ -8,6 +8,7 @@ disjoint from training. Output keys follow the report's ``EVAL_KEYS``.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -59,9 +60,14 @@ def run_eval_command(args) -> int:
         cfg.scenario = args.scenario
     shielded = not args.unshielded
     env_cfg = cfg.env_config()
+    if getattr(args, "human_slot", None) is not None:
+        # a robot-trained team deployed beside a human: the same trees drive the
+        # other two slots, the QP holds the human's block fixed (Eq. qpshield)
+        env_cfg = dataclasses.replace(
+            env_cfg, human_slot=None if args.human_slot == "none" else int(args.human_slot))
     raw = evaluate_policy(params, env_cfg, args.episodes, seed=args.seed, shielded=shielded)
     rec = eval_record(raw)
-    rec.update(method=cfg.method, scenario=cfg.scenario, version=version)
+    rec.update(method=cfg.method, scenario=cfg.scenario, version=version, human_slot=env_cfg.human_slot)
     if args.record:
         from common.audit.recording import record_episodes, save
 
@@ -74,7 +80,8 @@ def run_eval_command(args) -> int:
             v = rec.get(key)
             return "n/a" if v is None else f"{v * scale:.2f}"
         print(f"{cfg.method} on {cfg.scenario} (version {version}, {rec['episodes']} episodes, "
-              f"{'exact QP' if shielded else 'unshielded'}): SR {f('success_rate', 100)}%  "
+              f"{'exact QP' if shielded else 'unshielded'}"
+              f"{'' if env_cfg.human_slot is None else f', human in slot {env_cfg.human_slot}'}): SR {f('success_rate', 100)}%  "
               f"return {f('return_mean')}  Col/1k {f('col_per_1k')}  DR {f('drop_rate', 100)}%  "
               f"proposal viol. {f('proposal_violation', 100)}%  correction {f('correction')}", file=sys.stderr)
         print(json.dumps(rec, default=float))

@@ -34,6 +34,10 @@ def register(commands, bench) -> None:
     p.add_argument("--seed", type=int, default=10_000, help="evaluation seeds start here (disjoint from training)")
     p.add_argument("--scenario", default=None, help="override the run's scenario")
     p.add_argument("--unshielded", action="store_true", help="execute the trees' actions without the QP")
+    p.add_argument("--human-slot", default=None, choices=["0", "1", "2", "none"],
+                   help="deploy beside the scripted human partner in this carrier slot (its block is "
+                        "exogenous: noisy, delayed, never corrected by the QP); 'none' = three "
+                        "robots; default: the run's own setting")
     p.add_argument("--record", default=None, help="also record decision traces to this file")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=_eval)

@@ -75,3 +75,40 @@ def test_proposal_violation_is_split_by_row_kind():
     assert max(kinds) <= res["proposal_violation_rate"] <= sum(kinds) + 1e-12
     assert max(kinds[:2]) <= by_kind["any_wall"] <= sum(kinds[:2]) + 1e-12
     assert res["proposal_violation_rate"] > 0
+
+
+def test_eval_beside_a_human_partner_holds_the_human_block(tiny_run, capsys):
+    """`sage eval --human-slot k`: the robot-trained trees drive the other slots and
+    the QP never moves the human's (exogenous) block."""
+    assert main(["eval", str(tiny_run), "--episodes", "2", "--human-slot", "1", "--json"]) == 0
+    rec = json.loads(capsys.readouterr().out)
+    assert rec["human_slot"] == 1 and rec["episodes"] == 2 and rec["shielded"] is True
+    assert main(["eval", str(tiny_run), "--episodes", "1", "--human-slot", "none", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["human_slot"] is None
+
+
+def test_evaluation_with_a_human_never_corrects_the_human_block(monkeypatch):
+    import dataclasses
+
+    import common.qp as qp
+    from common.evaluation import evaluate_policy
+    from services.config import TrainConfig
+    from services.learner.service import _default_method
+
+    cfg = TrainConfig(run_id="t", method="sage").resolve()
+    params = _default_method(cfg).policy_params()
+    seen = []
+    real = qp.solve_cbf_qp
+
+    def spy(a, C, c, mask, fixed, **kw):
+        res = real(a, C, c, mask, fixed, **kw)
+        seen.append((fixed.copy(), a.copy(), res.a_exec.copy()))
+        return res
+
+    monkeypatch.setattr(qp, "solve_cbf_qp", spy)
+    env_cfg = dataclasses.replace(cfg.env_config(), human_slot=2)
+    evaluate_policy(params, env_cfg, 2, seed=5, shielded=True, max_steps=15)
+    assert seen
+    for fixed, a, a_exec in seen:
+        assert fixed[:, 6:9].all() and not fixed[:, :6].any()   # slot 2 = action dims 6..8
+        assert (a_exec[fixed] == a[fixed]).all()
