@@ -141,7 +141,94 @@ def summarize(results: list[Result]) -> dict:
         exposure = [training_exposure(r) for r in runs]
         for k in ("train_col_per_1k", "train_drop_rate", "train_env_steps"):
             out["overall"][m][k] = {"mean": _mean([e[k] for e in exposure]), "std": _std([e[k] for e in exposure])}
+        for k in ("w_gap", "cos_ind_team"):
+            out["overall"][m][k] = {"mean": _mean([curve_mean(r, k) for r in runs]),
+                                    "std": _std([curve_mean(r, k) for r in runs])}
+    out["train_scenarios"] = {
+        s: {m: {"train_col_per_1k": _mean([training_exposure(r)["train_col_per_1k"] for r in results
+                                           if r.method == m and r.scenario == s])} for m in methods}
+        for s in scenarios
+    }
+    out["headline"] = headline(out)
     return out
+
+
+def curve_mean(r: Result, key: str) -> float:
+    """Mean of a per-update diagnostic over the whole training run (NaN if never logged)."""
+    return _mean([p.get(key) for p in r.train_curve])
+
+
+def _change(ref: float, new: float) -> dict:
+    """ref -> new with the relative reduction in % (None when the reference is 0 or missing)."""
+    ok = not (math.isnan(ref) or math.isnan(new))
+    red = 100.0 * (1.0 - new / ref) if ok and ref > 0 else None
+    return {"from": ref, "to": new, "reduction_pct": red}
+
+
+def headline(summary: dict) -> dict:
+    """The comparisons the paper's abstract and Sec. IV quote, from this suite's overall rows:
+    the shield's collision reduction and SR cost (HAPPO -> HAPPO+CBF), SAGE's SR recovery and
+    DR change (HAPPO+CBF -> SAGE+CBF), SAIL's proposal-violation and correction reduction
+    (HAPPO+CBF -> SAIL+CBF) and TALO's W_gap reduction (SAIL+CBF -> SAGE+CBF, same
+    tree-SAIL proposal graph; training means)."""
+    o = summary["overall"]
+
+    def get(m, k):
+        return o[m][k]["mean"] if m in o else float("nan")
+
+    out = {}
+    if "happo" in o and "happo_cbf" in o:
+        out["shield"] = {
+            "col_per_1k": _change(get("happo", "col_per_1k"), get("happo_cbf", "col_per_1k")),
+            "train_col_per_1k": _change(get("happo", "train_col_per_1k"), get("happo_cbf", "train_col_per_1k")),
+            "success_rate": {"from": get("happo", "success_rate"), "to": get("happo_cbf", "success_rate")},
+        }
+    if "happo_cbf" in o and "sage" in o:
+        out["sage_vs_shield"] = {
+            "success_rate": {"from": get("happo_cbf", "success_rate"), "to": get("sage", "success_rate")},
+            "drop_rate": {"from": get("happo_cbf", "drop_rate"), "to": get("sage", "drop_rate")},
+        }
+    if "happo_cbf" in o and "sail_cbf" in o:
+        out["sail"] = {k: _change(get("happo_cbf", k), get("sail_cbf", k))
+                       for k in ("proposal_violation", "correction")}
+    if "sail_cbf" in o and "sage" in o:
+        out["talo"] = {"w_gap": _change(get("sail_cbf", "w_gap"), get("sage", "w_gap")),
+                       "cos_ind_team": {"from": get("sail_cbf", "cos_ind_team"), "to": get("sage", "cos_ind_team")}}
+    return out
+
+
+def headline_markdown(h: dict) -> list[str]:
+    def red(c):
+        pct = c["reduction_pct"]
+        if pct is None:
+            return "no reduction to state: the reference is 0"
+        return f"{pct:.1f}% lower" if pct >= 0 else f"{-pct:.1f}% higher"
+
+    lines = []
+    if "shield" in h:
+        sh = h["shield"]
+        lines.append(f"- Exact CBF filtering (HAPPO → HAPPO+CBF): deployment Col./1k {_fmt(sh['col_per_1k']['from'], 2)} → "
+                     f"{_fmt(sh['col_per_1k']['to'], 2)} ({red(sh['col_per_1k'])}); during training "
+                     f"{_fmt(sh['train_col_per_1k']['from'], 2)} → {_fmt(sh['train_col_per_1k']['to'], 2)} "
+                     f"({red(sh['train_col_per_1k'])}); SR {_fmt(sh['success_rate']['from'], scale=100)}% → "
+                     f"{_fmt(sh['success_rate']['to'], scale=100)}%.")
+    if "sage_vs_shield" in h:
+        sv = h["sage_vs_shield"]
+        gain = (sv["success_rate"]["to"] - sv["success_rate"]["from"]) * 100
+        lines.append(f"- SAGE+CBF vs HAPPO+CBF: SR {_fmt(sv['success_rate']['from'], scale=100)}% → "
+                     f"{_fmt(sv['success_rate']['to'], scale=100)}% ({gain:+.1f} pp); DR "
+                     f"{_fmt(sv['drop_rate']['from'], scale=100)}% → {_fmt(sv['drop_rate']['to'], scale=100)}%.")
+    if "sail" in h:
+        sa = h["sail"]
+        lines.append(f"- SAIL (HAPPO+CBF → SAIL+CBF): proposal violation {_fmt(sa['proposal_violation']['from'], scale=100)}% → "
+                     f"{_fmt(sa['proposal_violation']['to'], scale=100)}% ({red(sa['proposal_violation'])}); correction "
+                     f"{_fmt(sa['correction']['from'], 3)} → {_fmt(sa['correction']['to'], 3)} ({red(sa['correction'])}).")
+    if "talo" in h:
+        ta = h["talo"]
+        lines.append(f"- TALO (SAIL+CBF → SAGE+CBF, training means): W_gap {_fmt(ta['w_gap']['from'], 3)} → "
+                     f"{_fmt(ta['w_gap']['to'], 3)} ({red(ta['w_gap'])}); cos(g_ind, g_team) "
+                     f"{_fmt(ta['cos_ind_team']['from'], 3)} → {_fmt(ta['cos_ind_team']['to'], 3)}.")
+    return lines
 
 
 def _fmt(x: float, digits: int = 1, scale: float = 1.0) -> str:
@@ -180,6 +267,16 @@ def table_markdown(summary: dict) -> str:
         corr = pm("correction", 1, 3) if SHIELDED[m] else "N/A"
         lines.append(f"| {METHOD_TITLES[m]} | {o['runs']} | {pm('success_rate', 100)} | {pm('return_mean', 1, 2)} | "
                      f"{pm('col_per_1k')} | {pm('drop_rate', 100)} | {viol} | {wall_viol} | {corr} |")
+    if summary.get("headline"):
+        lines += ["", "### Headline comparisons (the quantities of the paper's abstract, from the rows above)", ""]
+        lines += headline_markdown(summary["headline"])
+    if summary.get("train_scenarios"):
+        lines += ["", "### Col./1k during training, per scenario (same budget)", "",
+                  "| Scenario | " + " | ".join(METHOD_TITLES[m] for m in methods) + " |",
+                  "|" + "---|" * (1 + len(methods))]
+        for s, row in summary["train_scenarios"].items():
+            lines.append(f"| {SCENARIO_TITLES[s]} | " + " | ".join(
+                _fmt(row[m]["train_col_per_1k"], 2) for m in methods) + " |")
     lines += ["", "### During training (same budget; collision steps and drops the carriers went through while learning)", "",
               "| Method | Env steps | Col./1k | DR (%) |", "|---|---|---|---|"]
     for m in methods:
@@ -222,26 +319,31 @@ def write_figures(results: list[Result], summary: dict, out_dir: Path) -> list[P
     colors = dict(zip(METHODS, ["#7f7f7f", "#1f77b4", "#2ca02c", "#ff7f0e", "#d62728"]))
     written = []
 
-    # Fig. main_sr: family-level SR (top) and Col./1k (bottom, log scale stands in for the broken axis).
+    # Fig. main_sr: family-level SR (top) and Col./1k at deployment (middle) and during training
+    # (bottom). A symlog axis (linear below 1) stands in for the paper's broken axis and keeps
+    # an exact 0 at 0 instead of a log-scale floor.
     fams = list(summary["families"])
     if fams:
-        fig, (ax_sr, ax_col) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
+        fig, (ax_sr, ax_col, ax_tr) = plt.subplots(3, 1, figsize=(7, 8), sharex=True)
         width = 0.8 / max(len(methods), 1)
         for j, m in enumerate(methods):
             xs = np.arange(len(fams)) + (j - (len(methods) - 1) / 2) * width
-            sr, sr_err, col, col_err = [], [], [], []
+            bars = {"sr": [], "sr_err": [], "col": [], "col_err": [], "tr": [], "tr_err": []}
             for fam in fams:
-                per_scen = [[r.eval.get("success_rate") for r in results if r.method == m and r.scenario == s]
-                            for s in FAMILIES[fam]]
-                vals = [v for vs in per_scen for v in vs if v is not None]
-                sr.append(100 * _mean(vals)); sr_err.append(100 * _std(vals))
-                cvals = [r.eval.get("col_per_1k") for r in results if r.method == m and r.scenario in FAMILIES[fam]]
-                col.append(_mean(cvals)); col_err.append(_std(cvals))
-            ax_sr.bar(xs, sr, width, yerr=sr_err, color=colors[m], label=METHOD_TITLES[m], capsize=2)
-            ax_col.bar(xs, np.maximum(col, 1e-2), width, yerr=col_err, color=colors[m], capsize=2)
-        ax_sr.set_ylabel("SR (%) ↑"); ax_sr.legend(fontsize=7, ncol=3)
-        ax_col.set_ylabel("Col./1k ↓ (log)"); ax_col.set_yscale("log")
-        ax_col.set_xticks(np.arange(len(fams))); ax_col.set_xticklabels(fams)
+                runs = [r for r in results if r.method == m and r.scenario in FAMILIES[fam]]
+                sr = [r.eval.get("success_rate") for r in runs]
+                bars["sr"].append(100 * _mean(sr)); bars["sr_err"].append(100 * _std(sr))
+                col = [r.eval.get("col_per_1k") for r in runs]
+                bars["col"].append(_mean(col)); bars["col_err"].append(_std(col))
+                tr = [training_exposure(r)["train_col_per_1k"] for r in runs]
+                bars["tr"].append(_mean(tr)); bars["tr_err"].append(_std(tr))
+            ax_sr.bar(xs, bars["sr"], width, yerr=bars["sr_err"], color=colors[m], label=METHOD_TITLES[m], capsize=2)
+            ax_col.bar(xs, bars["col"], width, yerr=bars["col_err"], color=colors[m], capsize=2)
+            ax_tr.bar(xs, bars["tr"], width, yerr=bars["tr_err"], color=colors[m], capsize=2)
+        ax_sr.set_ylabel("SR (%) ↑"); ax_sr.set_ylim(0, 105); ax_sr.legend(fontsize=7, ncol=3)
+        for ax, label in ((ax_col, "deployment Col./1k ↓"), (ax_tr, "training Col./1k ↓")):
+            ax.set_yscale("symlog", linthresh=1.0); ax.set_ylim(bottom=0); ax.set_ylabel(label)
+        ax_tr.set_xticks(np.arange(len(fams))); ax_tr.set_xticklabels(fams)
         fig.tight_layout(); path = out_dir / "main_sr.png"; fig.savefig(path, dpi=130); plt.close(fig)
         written.append(path)
 

@@ -65,3 +65,34 @@ def test_training_exposure_pools_episodes_over_updates():
     e = training_exposure(r)
     assert e["train_col_per_1k"] == pytest.approx(1000 * 8 / 2000)
     assert e["train_drop_rate"] == pytest.approx(2 / 10)
+
+
+def test_headline_comparisons_are_computed_from_the_overall_rows(tmp_path):
+    """Shield reduction HAPPO -> HAPPO+CBF, SAIL's violation reduction HAPPO+CBF -> SAIL+CBF,
+    TALO's W_gap reduction SAIL+CBF -> SAGE+CBF: hand-computed on synthetic results."""
+    def res(method, col, viol, w_gap, train_col):
+        ev = {k: 0.5 for k in EVAL_KEYS}
+        ev.update(col_per_1k=col, proposal_violation=viol)
+        curve = [{"progress": p, "w_gap": w_gap, "cos_ind_team": 0.9, "env_steps": 1000 * (i + 1),
+                  "episodes": 1, "ep_collision_steps_mean": train_col, "ep_drop_mean": 0.0}
+                 for i, p in enumerate((0.0, 1.0))]
+        path = tmp_path / f"{method}.json"
+        path.write_text(json.dumps({"method": method, "scenario": "maze", "seed": 0, "eval": ev,
+                                    "budget": {}, "train_curve": curve}))
+        return path
+
+    paths = [res("happo", 40.0, 0.5, 1.0, 10.0), res("happo_cbf", 1.0, 0.8, 1.0, 0.0),
+             res("sail_cbf", 1.0, 0.4, 2.0, 0.0), res("sage", 0.0, 0.4, 0.5, 0.0)]
+    s = summarize(load_results(paths))
+    h = s["headline"]
+    assert h["shield"]["col_per_1k"]["reduction_pct"] == pytest.approx(97.5)
+    # training exposure: 2 collision steps over 2000 env steps = 1.0 per 1k -> 0
+    assert h["shield"]["train_col_per_1k"]["from"] == pytest.approx(10.0)
+    assert h["shield"]["train_col_per_1k"]["reduction_pct"] == pytest.approx(100.0)
+    assert h["sail"]["proposal_violation"]["reduction_pct"] == pytest.approx(50.0)
+    assert h["talo"]["w_gap"]["reduction_pct"] == pytest.approx(75.0)
+    md = table_markdown(s)
+    assert "97.5% lower" in md and "75.0% lower" in md
+    # a zero reference gives no percentage rather than a division by zero
+    paths[0] = res("happo", 0.0, 0.5, 1.0, 10.0)
+    assert summarize(load_results(paths))["headline"]["shield"]["col_per_1k"]["reduction_pct"] is None
