@@ -338,11 +338,15 @@ def write_figures(results: list[Result], summary: dict, out_dir: Path) -> list[P
                 tr = [training_exposure(r)["train_col_per_1k"] for r in runs]
                 bars["tr"].append(_mean(tr)); bars["tr_err"].append(_std(tr))
             ax_sr.bar(xs, bars["sr"], width, yerr=bars["sr_err"], color=colors[m], label=METHOD_TITLES[m], capsize=2)
-            ax_col.bar(xs, bars["col"], width, yerr=bars["col_err"], color=colors[m], capsize=2)
-            ax_tr.bar(xs, bars["tr"], width, yerr=bars["tr_err"], color=colors[m], capsize=2)
-        ax_sr.set_ylabel("SR (%) ↑"); ax_sr.set_ylim(0, 105); ax_sr.legend(fontsize=7, ncol=3)
+            for ax, key in ((ax_col, "col"), (ax_tr, "tr")):
+                ax.bar(xs, bars[key], width, yerr=bars[key + "_err"], color=colors[m], capsize=2)
+                for x, v in zip(xs, bars[key]):   # print the value: a 0 bar is otherwise invisible
+                    ax.text(x, v if np.isfinite(v) else 0, _fmt(v), ha="center", va="bottom", fontsize=6)
+        ax_sr.set_ylabel("SR (%) ↑"); ax_sr.set_ylim(0, 105)
+        ax_sr.legend(fontsize=7, ncol=len(methods), loc="lower center", bbox_to_anchor=(0.5, 1.0))
         for ax, label in ((ax_col, "deployment Col./1k ↓"), (ax_tr, "training Col./1k ↓")):
-            ax.set_yscale("symlog", linthresh=1.0); ax.set_ylim(bottom=0); ax.set_ylabel(label)
+            top = max([b.get_height() for b in ax.patches if np.isfinite(b.get_height())], default=0.0)
+            ax.set_yscale("symlog", linthresh=1.0); ax.set_ylim(0, max(2.0 * top, 1.0)); ax.set_ylabel(label)
         ax_tr.set_xticks(np.arange(len(fams))); ax_tr.set_xticklabels(fams)
         fig.tight_layout(); path = out_dir / "main_sr.png"; fig.savefig(path, dpi=130); plt.close(fig)
         written.append(path)
