@@ -54,6 +54,7 @@ RESULT_KEYS = ["method", "scenario", "seed", "eval", "train_curve", "budget"]
 CURVE_KEYS = {
     "episode_return": "ep_return_mean", "drop_rate": "ep_drop_mean", "success_rate": "ep_success_mean",
     "proposal_violation": "proposal_violation_rate", "correction": "correction_mean",
+    "deploy_success_rate": "deploy_sr",   # the learner's periodic deterministic deployment probe
 }
 SHIELDED = {"happo": False, "happo_cbf": True, "talo_cbf": True, "sail_cbf": True, "sage": True}
 
@@ -351,13 +352,17 @@ def write_figures(results: list[Result], summary: dict, out_dir: Path) -> list[P
         fig.tight_layout(); path = out_dir / "main_sr.png"; fig.savefig(path, dpi=130); plt.close(fig)
         written.append(path)
 
-    # Fig. reward_drop: training curves of return and drop rate.
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
-    for key, ax, title in (("episode_return", axes[0], "(a) episode return"), ("drop_rate", axes[1], "(b) drop rate")):
+    # Fig. reward_drop: training curves of return and drop rate, plus (where the learner
+    # logged it) the deterministic deployment probe, which can differ from training SR.
+    panels = [("episode_return", "(a) episode return"), ("drop_rate", "(b) drop rate")]
+    if any("deploy_sr" in p for r in results for p in r.train_curve):
+        panels.append(("deploy_success_rate", "(c) deployment SR (probe: trees + exact QP)"))
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.5 * len(panels), 3.4))
+    for (key, title), ax in zip(panels, axes):
         for m in methods:
             g, mu, sd = _curves(results, m, key)
             ax.plot(g, mu, color=colors[m], label=METHOD_TITLES[m]); ax.fill_between(g, mu - sd, mu + sd, color=colors[m], alpha=0.15)
-        ax.set_title(title); ax.set_xlabel("training progress")
+        ax.set_title(title, fontsize=9); ax.set_xlabel("training progress")
     axes[0].legend(fontsize=7)
     fig.tight_layout(); path = out_dir / "reward_drop.png"; fig.savefig(path, dpi=130); plt.close(fig)
     written.append(path)

@@ -32,7 +32,7 @@ def register(commands, bench) -> None:
                    help="put the scripted human partner in this carrier slot (exogenous, no tree)")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="override a config field, e.g. --set algo.actor_lr=1e-3 --set env.max_steps=400 "
-                        "--set shield.window_s=0.001 (value parsed as JSON, else string)")
+                        "--set shield.window_s=0.001 --set train.deploy_probe_every=10 (value parsed as JSON, else string)")
     p.add_argument("--quiet", action="store_true", help="no live progress line")
     p.set_defaults(func=cmd_train)
 
@@ -63,7 +63,8 @@ def config_from_args(args) -> TrainConfig:
 
 
 def apply_override(cfg: TrainConfig, item: str) -> None:
-    """``SECTION.KEY=VALUE`` onto the config (env/algo dicts or a nested dataclass)."""
+    """``SECTION.KEY=VALUE`` onto the config (env/algo dicts, a nested dataclass, or
+    ``train.KEY`` for a plain top-level TrainConfig field)."""
     import dataclasses
 
     if "=" not in item or "." not in item.split("=", 1)[0]:
@@ -77,18 +78,29 @@ def apply_override(cfg: TrainConfig, item: str) -> None:
     if section in ("env", "algo"):
         setattr(cfg, section, {**getattr(cfg, section), key: value})
         return
+    if section == "train":
+        plain = {f.name for f in dataclasses.fields(cfg)
+                 if not dataclasses.is_dataclass(getattr(cfg, f.name)) and f.name not in ("env", "algo")}
+        if key not in plain:
+            raise SystemExit(f"--set: unknown config field {path!r} (train.* takes {', '.join(sorted(plain))})")
+        setattr(cfg, key, value)
+        return
     target = getattr(cfg, section, None)
     if not dataclasses.is_dataclass(target) or key not in {f.name for f in dataclasses.fields(target)}:
         raise SystemExit(f"--set: unknown config field {path!r}")
     setattr(target, key, value)
 
 
+# Evaluation seeds, disjoint from the training envs (1000 * seed + actor id) and each other.
+FINAL_EVAL_SEED = 10_000
+DEPLOY_PROBE_SEED = 30_000
+
+
 def final_eval(cfg: TrainConfig, params: dict) -> dict:
     from common.evaluation import evaluate_policy
 
-    shielded = cfg.method != "happo"
-    return evaluate_policy(params, cfg.env_config(), cfg.eval_episodes, seed=10_000 + cfg.seed,
-                           shielded=shielded, max_steps=cfg.eval_max_steps or None)
+    return evaluate_policy(params, cfg.env_config(), cfg.eval_episodes, seed=FINAL_EVAL_SEED + cfg.seed,
+                           shielded=cfg.method != "happo", max_steps=cfg.eval_max_steps or None)
 
 
 def cmd_train(args) -> int:

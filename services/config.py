@@ -86,6 +86,12 @@ class TrainConfig:
     params_rebroadcast_s: float = 0.5
     eval_episodes: int = 4             # final deterministic deployment eval (0 = skip)
     eval_max_steps: int = 0            # 0 -> env default episode length
+    # Deployment probe during training: every this many updates the learner runs
+    # the deterministic trees (+ exact QP when shielded) on a few held-out episodes
+    # and logs deploy_sr & co. The stochastic training SR can hide a deterministic
+    # policy that stalls (seen: SAGE on narrow_gate, training SR 0.9, deployment 0.0).
+    deploy_probe_every: int = 20       # 0 = off
+    deploy_probe_episodes: int = 8
     # torch intra-op threads of the learner (0 = torch's default). On 2 cores a
     # second torch thread fights the actor/shield threads: measured in-process
     # 10 s -> 1.8 s per 512-sample SAGE update with 1 thread.
@@ -111,6 +117,8 @@ class TrainConfig:
             raise ValueError("need a budget: updates >= 1 or minutes > 0")
         if self.torch_threads < 0:
             raise ValueError("torch_threads must be >= 0 (0 = torch default)")
+        if self.deploy_probe_every < 0 or self.deploy_probe_episodes < 1:
+            raise ValueError("deploy_probe_every must be >= 0 and deploy_probe_episodes >= 1")
         if self.max_lag < 0 or self.chunks_per_update < 0:
             raise ValueError("max_lag and chunks_per_update must be >= 0")
         if self.shield.max_batch < 1 or self.shield.window_s < 0:

@@ -12,7 +12,8 @@ def _result(tmp_path, method, scenario, seed, sr, col, curve_scale=1.0):
     data = {
         "method": method, "scenario": scenario, "seed": seed, "eval": ev, "budget": {"updates": 2},
         "train_curve": [{"progress": p, "episode_return": curve_scale * p, "drop_rate": 0.1,
-                         "proposal_violation": 0.2, "correction": 0.1, "w_gap": 1.0, "cos_ind_team": 0.9}
+                         "proposal_violation": 0.2, "correction": 0.1, "w_gap": 1.0, "cos_ind_team": 0.9,
+                         **({"deploy_sr": sr} if p > 0 else {})}   # the learner's probe: not every update
                         for p in (0.0, 0.5, 1.0)],
     }
     path = tmp_path / f"{method}__{scenario}__{seed}.json"

@@ -112,3 +112,30 @@ def test_evaluation_with_a_human_never_corrects_the_human_block(monkeypatch):
     for fixed, a, a_exec in seen:
         assert fixed[:, 6:9].all() and not fixed[:, :6].any()   # slot 2 = action dims 6..8
         assert (a_exec[fixed] == a[fixed]).all()
+
+
+def test_learner_logs_a_deterministic_deployment_probe(tmp_path):
+    """--set train.deploy_probe_every=1: each update's row carries what deployment
+    would do now (hard trees + exact QP on held-out episodes)."""
+    run = tmp_path / "probe"
+    assert main(["train", "--method", "happo_cbf", "--updates", "2", "--envs-per-actor", "2", "--chunk-len", "8",
+                 "--eval-episodes", "0", "--set", "train.deploy_probe_every=1", "--set", "train.deploy_probe_episodes=2",
+                 "--set", "env.max_steps=5", "--run-dir", str(run), "--quiet"]) == 0
+    rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    assert len(rows) == 2
+    for r in rows:
+        assert 0.0 <= r["deploy_sr"] <= 1.0 and r["deploy_correction"] >= 0.0
+        assert r["deploy_col_per_1k"] >= 0.0 and "deploy_return" in r
+
+
+def test_set_train_field_is_checked():
+    from services.cli import apply_override
+    from services.config import TrainConfig
+
+    cfg = TrainConfig()
+    apply_override(cfg, "train.deploy_probe_every=7")
+    assert cfg.deploy_probe_every == 7
+    with pytest.raises(SystemExit, match="unknown config field"):
+        apply_override(cfg, "train.no_such_field=1")
+    with pytest.raises(SystemExit, match="unknown config field"):
+        apply_override(cfg, "train.shield=1")       # nested sections go through shield.KEY

@@ -170,6 +170,20 @@ class LearnerService(Service):
             return True
         return bool(self.cfg.minutes) and time.monotonic() - self._t_start >= 60.0 * self.cfg.minutes
 
+    def deploy_probe(self) -> dict:
+        """What deployment would do now: hard trees' deterministic actions through the
+        exact QP (unshielded for HAPPO) on held-out seeded episodes (Sec. III-D)."""
+        from common.evaluation import evaluate_policy
+        from services.cli import DEPLOY_PROBE_SEED
+
+        t0 = time.perf_counter()
+        e = evaluate_policy(self.method.policy_params(), self.cfg.env_config(), self.cfg.deploy_probe_episodes,
+                            seed=DEPLOY_PROBE_SEED + self.cfg.seed, shielded=self.method.shielded,
+                            max_steps=self.cfg.eval_max_steps or None)
+        return {"deploy_sr": e["success_rate"], "deploy_return": e["return_mean"],
+                "deploy_col_per_1k": e["col_per_1k"], "deploy_drop_rate": e["drop_rate"],
+                "deploy_correction": e["correction_mean"], "deploy_probe_s": time.perf_counter() - t0}
+
     # ------------------------------------------------------------- chunks
     def _on_traj(self, _key: str, payload: bytes) -> None:
         self.chunks.put(payload)  # decode on the learner thread, not Zenoh's
@@ -242,6 +256,9 @@ class LearnerService(Service):
                "success_rate_recent": float(np.mean(self.recent_success)) if self.recent_success else None}
         row.update(_episode_summary(episodes))
         row.update({k: float(v) for k, v in diag.items() if np.isscalar(v)})
+        every = self.cfg.deploy_probe_every
+        if every and self.updates % every == 0:
+            row.update(self.deploy_probe())
         self.log_rows.append(row)
         self.publish_params()
         if self.updates % self.cfg.checkpoint_every == 0:
