@@ -121,7 +121,9 @@ def test_status_line_from_heartbeats():
     assert "SR 0.25" in line  # learner has none yet: mean of the actors'
     assert "UNHEALTHY actor/1" in line
     latest["learner/0"]["success_rate"] = 0.75
-    assert "SR 0.75" in status_line(fresh, latest)
+    assert "SR 0.75" in status_line(fresh, latest) and "deploy SR" not in status_line(fresh, latest)
+    latest["learner/0"]["extra"] = {"deploy_sr": 0.125, "chunks_used": 3.0}   # the learner's probe
+    assert "SR 0.75 | deploy SR 0.12 | shield p99" in status_line(fresh, latest)
     assert status_line({}).startswith("steps/s      0.0 | version -1 | SR - | shield p99 -")
 
 

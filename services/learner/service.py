@@ -106,13 +106,16 @@ class LearnerService(Service):
         self._t_start = time.monotonic()
         self._t_params = -1e9
         self.log_rows: MetricsLog | None = None
+        self.last_deploy_sr: float | None = None   # newest deployment probe (status line)
 
     # ------------------------------------------------------------- status
     def status_fields(self) -> dict:
         sr = float(np.mean(self.recent_success)) if self.recent_success else None
+        extra = {f"chunks_{k}": float(v) for k, v in self.counts.items()}
+        if self.last_deploy_sr is not None and np.isfinite(self.last_deploy_sr):
+            extra["deploy_sr"] = float(self.last_deploy_sr)
         return {"version": self.version, "env_steps": self.env_steps, "updates": self.updates,
-                "env_steps_per_s": self.steps_rate.rate(), "success_rate": sr,
-                "extra": {f"chunks_{k}": float(v) for k, v in self.counts.items()}}
+                "env_steps_per_s": self.steps_rate.rate(), "success_rate": sr, "extra": extra}
 
     # ------------------------------------------------------------- params / checkpoints
     def publish_params(self) -> None:
@@ -180,6 +183,7 @@ class LearnerService(Service):
         e = evaluate_policy(self.method.policy_params(), self.cfg.env_config(), self.cfg.deploy_probe_episodes,
                             seed=DEPLOY_PROBE_SEED + self.cfg.seed, shielded=self.method.shielded,
                             max_steps=self.cfg.eval_max_steps or None)
+        self.last_deploy_sr = e["success_rate"]
         return {"deploy_sr": e["success_rate"], "deploy_return": e["return_mean"],
                 "deploy_col_per_1k": e["col_per_1k"], "deploy_drop_rate": e["drop_rate"],
                 "deploy_correction": e["correction_mean"], "deploy_probe_s": time.perf_counter() - t0}
