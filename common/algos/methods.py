@@ -383,6 +383,8 @@ class Method:
             stats = self._ratio_stats(log_ratio[:, None], active[:, None])
             losses.append(float(loss.detach())); ents.append(float(entropy.detach()))
             kls.append(stats["approx_kl"]); clips.append(stats["clip_frac"])
+            if i == order[-1]:
+                break   # no carrier after this one: its M would go unused (saves a SAIL solve)
             # M <- M * rho_i(theta_i new)  (HARL: ratio of the updated carrier, detached)
             with torch.no_grad():
                 a_st_cache[:, block] = tree(mb.obs[:, i], tau).action
@@ -392,6 +394,7 @@ class Method:
         return {"policy_loss": float(np.sum(losses)), "approx_kl": float(np.mean(kls)),
                 "clip_frac": float(np.mean(clips)), "entropy": float(np.mean(ents)),
                 "actor_grad_norm": float(np.mean(norms)),
+                # spread of the M factor the last carrier in the order was updated with
                 "happo_factor_std": float(factor.std()) if factor.numel() > 1 else 0.0}
 
     def _first_minibatch_diagnostics(self, mb: Minibatch, tau: float, kappa: float) -> dict[str, float]:
