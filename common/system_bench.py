@@ -217,6 +217,7 @@ class SystemBench:
                           method=self.cfg.method, actors=actors, envs_per_actor=self.cfg.envs_per_actor,
                           chunk_len=self.cfg.chunk_len, chunks_per_update=1, updates=1_000_000,
                           status_period_s=0.2, eval_episodes=0, checkpoint_every=1_000_000, seed=self.cfg.seed,
+                          deploy_probe_every=0,   # a probe would pause the learner mid-measurement
                           mode="supervised", algo={"epochs": 1, "minibatches": 1})
         if connect:
             cfg.transport.connect, cfg.transport.mode = list(connect), "client"
