@@ -361,7 +361,8 @@ def write_figures(results: list[Result], summary: dict, out_dir: Path) -> list[P
     for (key, title), ax in zip(panels, axes):
         for m in methods:
             g, mu, sd = _curves(results, m, key)
-            ax.plot(g, mu, color=colors[m], label=METHOD_TITLES[m]); ax.fill_between(g, mu - sd, mu + sd, color=colors[m], alpha=0.15)
+            lo, hi = (mu - sd, mu + sd) if key == "episode_return" else (np.clip(mu - sd, 0, 1), np.clip(mu + sd, 0, 1))
+            ax.plot(g, mu, color=colors[m], label=METHOD_TITLES[m]); ax.fill_between(g, lo, hi, color=colors[m], alpha=0.15)
         ax.set_title(title, fontsize=9); ax.set_xlabel("training progress")
     axes[0].legend(fontsize=7)
     fig.tight_layout(); path = out_dir / "reward_drop.png"; fig.savefig(path, dpi=130); plt.close(fig)
