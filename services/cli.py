@@ -91,13 +91,9 @@ def apply_override(cfg: TrainConfig, item: str) -> None:
     setattr(target, key, value)
 
 
-# Evaluation seeds, disjoint from the training envs (1000 * seed + actor id) and each other.
-FINAL_EVAL_SEED = 10_000
-DEPLOY_PROBE_SEED = 30_000
-
-
 def final_eval(cfg: TrainConfig, params: dict) -> dict:
     from common.evaluation import evaluate_policy
+    from services.config import FINAL_EVAL_SEED
 
     return evaluate_policy(params, cfg.env_config(), cfg.eval_episodes, seed=FINAL_EVAL_SEED + cfg.seed,
                            shielded=cfg.method != "happo", max_steps=cfg.eval_max_steps or None)

@@ -20,6 +20,9 @@ from typing import Any
 from common.keys import check_id
 
 METHODS = ("happo", "happo_cbf", "talo_cbf", "sail_cbf", "sage")
+# Evaluation seeds, disjoint from the training envs (1000 * seed + actor id) and each other.
+FINAL_EVAL_SEED = 10_000
+DEPLOY_PROBE_SEED = 30_000
 
 
 @dataclass

@@ -177,7 +177,7 @@ class LearnerService(Service):
         """What deployment would do now: hard trees' deterministic actions through the
         exact QP (unshielded for HAPPO) on held-out seeded episodes (Sec. III-D)."""
         from common.evaluation import evaluate_policy
-        from services.cli import DEPLOY_PROBE_SEED
+        from services.config import DEPLOY_PROBE_SEED
 
         t0 = time.perf_counter()
         e = evaluate_policy(self.method.policy_params(), self.cfg.env_config(), self.cfg.deploy_probe_episodes,
@@ -260,11 +260,11 @@ class LearnerService(Service):
                "success_rate_recent": float(np.mean(self.recent_success)) if self.recent_success else None}
         row.update(_episode_summary(episodes))
         row.update({k: float(v) for k, v in diag.items() if np.isscalar(v)})
+        self.publish_params()   # first, so the actors roll out with it during the probe
         every = self.cfg.deploy_probe_every
         if every and self.updates % every == 0:
             row.update(self.deploy_probe())
         self.log_rows.append(row)
-        self.publish_params()
         if self.updates % self.cfg.checkpoint_every == 0:
             self.checkpoint()
         return True
