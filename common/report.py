@@ -175,7 +175,7 @@ def headline(summary: dict) -> dict:
     o = summary["overall"]
 
     def get(m, k):
-        return o[m][k]["mean"] if m in o else float("nan")
+        return o[m][k]["mean"]
 
     out = {}
     if "happo" in o and "happo_cbf" in o:
@@ -205,30 +205,29 @@ def headline_markdown(h: dict) -> list[str]:
             return "no reduction to state: the reference is 0"
         return f"{pct:.1f}% lower" if pct >= 0 else f"{-pct:.1f}% higher"
 
+    def arrow(c, digits=1, scale=1.0, unit=""):   # "from → to" of one comparison
+        return f"{_fmt(c['from'], digits, scale)}{unit} → {_fmt(c['to'], digits, scale)}{unit}"
+
     lines = []
     if "shield" in h:
         sh = h["shield"]
-        lines.append(f"- Exact CBF filtering (HAPPO → HAPPO+CBF): deployment Col./1k {_fmt(sh['col_per_1k']['from'], 2)} → "
-                     f"{_fmt(sh['col_per_1k']['to'], 2)} ({red(sh['col_per_1k'])}); during training "
-                     f"{_fmt(sh['train_col_per_1k']['from'], 2)} → {_fmt(sh['train_col_per_1k']['to'], 2)} "
-                     f"({red(sh['train_col_per_1k'])}); SR {_fmt(sh['success_rate']['from'], scale=100)}% → "
-                     f"{_fmt(sh['success_rate']['to'], scale=100)}%.")
+        lines.append(f"- Exact CBF filtering (HAPPO → HAPPO+CBF): deployment Col./1k {arrow(sh['col_per_1k'], 2)} "
+                     f"({red(sh['col_per_1k'])}); during training {arrow(sh['train_col_per_1k'], 2)} "
+                     f"({red(sh['train_col_per_1k'])}); SR {arrow(sh['success_rate'], scale=100, unit='%')}.")
     if "sage_vs_shield" in h:
         sv = h["sage_vs_shield"]
         gain = (sv["success_rate"]["to"] - sv["success_rate"]["from"]) * 100
-        lines.append(f"- SAGE+CBF vs HAPPO+CBF: SR {_fmt(sv['success_rate']['from'], scale=100)}% → "
-                     f"{_fmt(sv['success_rate']['to'], scale=100)}% ({gain:+.1f} pp); DR "
-                     f"{_fmt(sv['drop_rate']['from'], scale=100)}% → {_fmt(sv['drop_rate']['to'], scale=100)}%.")
+        lines.append(f"- SAGE+CBF vs HAPPO+CBF: SR {arrow(sv['success_rate'], scale=100, unit='%')} ({gain:+.1f} pp); "
+                     f"DR {arrow(sv['drop_rate'], scale=100, unit='%')}.")
     if "sail" in h:
         sa = h["sail"]
-        lines.append(f"- SAIL (HAPPO+CBF → SAIL+CBF): proposal violation {_fmt(sa['proposal_violation']['from'], scale=100)}% → "
-                     f"{_fmt(sa['proposal_violation']['to'], scale=100)}% ({red(sa['proposal_violation'])}); correction "
-                     f"{_fmt(sa['correction']['from'], 3)} → {_fmt(sa['correction']['to'], 3)} ({red(sa['correction'])}).")
+        lines.append(f"- SAIL (HAPPO+CBF → SAIL+CBF): proposal violation "
+                     f"{arrow(sa['proposal_violation'], scale=100, unit='%')} ({red(sa['proposal_violation'])}); "
+                     f"correction {arrow(sa['correction'], 3)} ({red(sa['correction'])}).")
     if "talo" in h:
         ta = h["talo"]
-        lines.append(f"- TALO (SAIL+CBF → SAGE+CBF, training means): W_gap {_fmt(ta['w_gap']['from'], 3)} → "
-                     f"{_fmt(ta['w_gap']['to'], 3)} ({red(ta['w_gap'])}); cos(g_ind, g_team) "
-                     f"{_fmt(ta['cos_ind_team']['from'], 3)} → {_fmt(ta['cos_ind_team']['to'], 3)}.")
+        lines.append(f"- TALO (SAIL+CBF → SAGE+CBF, training means): W_gap {arrow(ta['w_gap'], 3)} "
+                     f"({red(ta['w_gap'])}); cos(g_ind, g_team) {arrow(ta['cos_ind_team'], 3)}.")
     return lines
 
 
