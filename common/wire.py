@@ -26,6 +26,8 @@ from typing import Any
 import msgpack
 import numpy as np
 
+from common.spec import JOINT_ACT_DIM, N_CARRIERS
+
 SCHEMA_VERSION = 1
 
 # dtype allow-list: name on the wire -> numpy dtype (always little-endian).
@@ -103,8 +105,6 @@ class EpisodeList:
     """List of maps str -> finite number (finished-episode metrics)."""
 
 
-N_AGENTS = 3
-ACT_DIM = 9  # stacked action dim d = 3N
 
 SCHEMAS: dict[str, dict[str, Any]] = {
     # Actor -> learner, on sage/<run>/traj/<actor_id>. Leading [T, K] = (time, env).
@@ -114,25 +114,25 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         "incarnation": Scalar("str"),        # learner incarnation that issued those params
         "env_steps": Scalar("int"),          # actor's cumulative env steps (all K envs)
         "version_t": Arr("int", ("T",)),     # parameter version used at each step
-        "obs": Arr("float", ("T", "K", N_AGENTS, "O")),
+        "obs": Arr("float", ("T", "K", N_CARRIERS, "O")),
         "state": Arr("float", ("T", "K", "S")),
-        "C": Arr("float", ("T", "K", "M", ACT_DIM)),
+        "C": Arr("float", ("T", "K", "M", JOINT_ACT_DIM)),
         "c": Arr("float", ("T", "K", "M")),
         "row_mask": Arr("bool", ("T", "K", "M")),
-        "fixed_mask": Arr("bool", ("T", "K", ACT_DIM)),
-        "a_st": Arr("float", ("T", "K", ACT_DIM)),
-        "a_bar": Arr("float", ("T", "K", ACT_DIM)),
-        "a_prop": Arr("float", ("T", "K", ACT_DIM)),
-        "a_exec": Arr("float", ("T", "K", ACT_DIM)),
-        "logp": Arr("float", ("T", "K", N_AGENTS)),
-        "leaf": Arr("int", ("T", "K", N_AGENTS)),
+        "fixed_mask": Arr("bool", ("T", "K", JOINT_ACT_DIM)),
+        "a_st": Arr("float", ("T", "K", JOINT_ACT_DIM)),
+        "a_bar": Arr("float", ("T", "K", JOINT_ACT_DIM)),
+        "a_prop": Arr("float", ("T", "K", JOINT_ACT_DIM)),
+        "a_exec": Arr("float", ("T", "K", JOINT_ACT_DIM)),
+        "logp": Arr("float", ("T", "K", N_CARRIERS)),
+        "leaf": Arr("int", ("T", "K", N_CARRIERS)),
         "reward": Arr("float", ("T", "K")),
         "terminated": Arr("bool", ("T", "K")),
         "truncated": Arr("bool", ("T", "K")),
         "final_state": Arr("float", ("T", "K", "S")),
-        "final_obs": Arr("float", ("T", "K", N_AGENTS, "O")),
+        "final_obs": Arr("float", ("T", "K", N_CARRIERS, "O")),
         "last_state": Arr("float", ("K", "S")),
-        "last_obs": Arr("float", ("K", N_AGENTS, "O")),
+        "last_obs": Arr("float", ("K", N_CARRIERS, "O")),
         "episodes": EpisodeList(),
     },
     # Learner -> actors, on sage/<run>/params (re-broadcast periodically).
@@ -145,15 +145,15 @@ SCHEMAS: dict[str, dict[str, Any]] = {
     },
     # Actor -> shield query payload on sage/<run>/shield (one batched request per step).
     "shield_req": {
-        "a_prop": Arr("float", ("B", ACT_DIM)),
-        "C": Arr("float", ("B", "M", ACT_DIM)),
+        "a_prop": Arr("float", ("B", JOINT_ACT_DIM)),
+        "C": Arr("float", ("B", "M", JOINT_ACT_DIM)),
         "c": Arr("float", ("B", "M")),
         "row_mask": Arr("bool", ("B", "M")),
-        "fixed_mask": Arr("bool", ("B", ACT_DIM)),
+        "fixed_mask": Arr("bool", ("B", JOINT_ACT_DIM)),
     },
     # Shield -> actor reply.
     "shield_rep": {
-        "a_exec": Arr("float", ("B", ACT_DIM)),
+        "a_exec": Arr("float", ("B", JOINT_ACT_DIM)),
         "status": Arr("int", ("B",)),
         "correction_norm": Arr("float", ("B",)),
         "slack": Arr("float", ("B",)),

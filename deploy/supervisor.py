@@ -1,37 +1,28 @@
-"""Process supervisor for a multi-process SAGE run.
-
-    sage up --actors 3 --updates 50                      # fresh run, local router
-    sage up --config runs/<id>/config.json               # a saved run config
-    sage train --mode supervised ...                     # calls run_supervised()
-    python -m deploy.supervisor --config RUN.json --roles actor --actor-ids 4-7   # actors on another host
-
-It launches a Zenoh router (unless the config names one in
-``transport.connect``), the shield, the learner and N actors, each as its own
-process group (``python -m services.<role> --config RUN.json``), then:
+"""A generic process supervisor: runs ``ServiceSpec`` commands, each as its
+own process group (what SAGE runs is ``deploy/sage_run.py``), and:
 
 * restarts a service that crashed (non-zero exit or killed) after an
   exponential backoff, and gives up cleanly -- everything stopped, exit code
   ``EXIT_GAVE_UP``, a one-line reason -- when one service crashes more than
   ``restart_budget`` times within ``restart_window_s`` (no restart storms);
-* ends the run when the learner exits 0 (budget reached): it publishes a
-  ``control`` stop for the run (remote actors too) and stops the rest;
+* ends the run when a service marked ``ends_run`` exits 0 (SAGE: the learner
+  reached its budget), calling ``on_finish`` first, and stops the rest;
 * on SIGINT/SIGTERM sends SIGTERM to every child's process group, waits up to
   ``term_deadline_s``, then SIGKILLs what is left (a second signal skips the
   wait), so no child or grandchild outlives it; children also get SIGTERM from
   the kernel if the supervisor itself is SIGKILLed (``deploy/pdeathsig.py``);
-* shows one live status line assembled from the services' ``status``
-  heartbeats (docs/wire.md), and keeps ``status.json`` in the run directory;
+* shows one live status line from a ``StatusSource`` (SAGE: the services'
+  heartbeats) and keeps ``status.json`` in the run directory;
 * appends its events (start, exit code, backoff, restart, give_up, stop,
   kill, shutdown) as JSONL to ``<run_dir>/supervisor.jsonl``; each child's
   stdout/stderr go to ``<run_dir>/logs/<service>.log``.
 
-The supervisor opens its own Zenoh session only after its children are
-launched, and it starts processes only with ``subprocess`` (fork + exec), so
-no child ever inherits a live Zenoh session.
+The status source is opened only after the children are launched, and
+processes start only with ``subprocess`` (fork + exec), so no child ever
+inherits a live Zenoh session.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import signal
@@ -41,16 +32,14 @@ import sys
 import threading
 import time
 from collections import deque
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable, Protocol, Sequence
 
-from common.status import status_line
+from common.rundir import RunDir, atomic_write_text
+from common.status import LiveLine
 
 EXIT_GAVE_UP = 1
-ROLES = ("learner", "shield", "actor")
-# Prometheus port convention (deploy/prometheus.yml): base+0 learner, base+1 shield, base+10+i actor i
-METRICS_OFFSETS = {"learner": 0, "shield": 1, "actor_base": 10}
 
 
 @dataclass
@@ -132,9 +121,10 @@ class Supervisor:
         self.cfg = (cfg or SupervisorConfig()).validate()
         self.children = [_Child(s) for s in specs]
         self.run_dir = Path(run_dir)
-        self.log_dir = self.run_dir / "logs"
+        self.paths = RunDir(run_dir)
+        self.log_dir = self.paths.logs
         self.log_dir.mkdir(parents=True, exist_ok=True)
-        self.events_path = self.run_dir / "supervisor.jsonl"
+        self.events_path = self.paths.supervisor_events
         self.cwd = cwd
         self.env = env
         self.out = out if out is not None else sys.stderr
@@ -159,7 +149,7 @@ class Supervisor:
         argv = list(c.spec.argv)
         if self.cfg.parent_death_signal and sys.platform.startswith("linux"):
             argv = [sys.executable, "-m", "deploy.pdeathsig", str(os.getpid()), "--", *argv]
-        with open(self.log_dir / f"{c.spec.name}.log", "ab") as log:
+        with open(self.paths.log(c.spec.name), "ab") as log:
             # own session = own process group: a terminal's Ctrl-C reaches only the
             # supervisor, and killpg() reaches the service and anything it spawned
             c.proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
@@ -174,7 +164,7 @@ class Supervisor:
         while time.monotonic() < deadline:
             if c.proc.poll() is not None:
                 raise RuntimeError(f"{c.spec.name} exited with code {c.proc.returncode} during start-up; "
-                                   f"see {self.log_dir / (c.spec.name + '.log')}")
+                                   f"see {self.paths.log(c.spec.name)}")
             try:
                 with socket.create_connection((host, port), timeout=0.5):
                     self.event("ready", service=c.spec.name, endpoint=f"{host}:{port}")
@@ -220,7 +210,7 @@ class Supervisor:
             c.state = "failed"
             msg = (f"giving up: {c.spec.name} crashed {len(c.restarts) + 1} times within "
                    f"{self.cfg.restart_window_s:g} s (last exit code {code}); "
-                   f"see {self.log_dir / (c.spec.name + '.log')}")
+                   f"see {self.paths.log(c.spec.name)}")
             self.event("give_up", service=c.spec.name, code=code, restarts=len(c.restarts), message=msg)
             self._finish(EXIT_GAVE_UP, msg)
             return
@@ -303,13 +293,13 @@ class Supervisor:
                 old[sig] = signal.signal(sig, lambda signum, _f: self.signals.append(signum))
         status: StatusSource | None = None
         reason = "error"
-        tty = hasattr(self.out, "isatty") and self.out.isatty()
+        live = LiveLine(self.out, self.cfg.status_log_period_s)
         try:
             self.event("supervisor_start", pid=os.getpid(), services=[c.spec.name for c in self.children],
                        config=asdict(self.cfg))
             self.start()
             status = status_factory() if status_factory else None
-            last_line = last_log = time.monotonic()
+            last_line = time.monotonic()
             while True:
                 if self.signals:
                     sig = self.signals[0]
@@ -324,9 +314,8 @@ class Supervisor:
                 now = time.monotonic()
                 if status is not None and now - last_line >= self.cfg.status_period_s:
                     last_line = now
-                    log_now = now - last_log >= self.cfg.status_log_period_s
-                    last_log = now if log_now else last_log
-                    self._show_status(status, tty, log_now)
+                    live.show(f"{status.line()} | {self.summary()}")
+                    self._write_status(status)
                 time.sleep(self.cfg.poll_s)
         except BaseException as exc:
             self._finish(EXIT_GAVE_UP, f"supervisor error: {exc}")
@@ -337,8 +326,7 @@ class Supervisor:
             if status is not None:
                 self._write_status(status)
                 status.close()
-            if tty:
-                self.out.write("\n")
+            live.close()
             for sig, handler in old.items():
                 signal.signal(sig, handler)
             code, message = self.outcome if self.outcome else (0, "stopped")
@@ -358,251 +346,10 @@ class Supervisor:
                                                               "starts": c.starts, "last_code": c.last_code}
                                                for c in self.children},
                 "status": status.snapshot()}
-        tmp = self.run_dir / "status.json.tmp"
-        tmp.write_text(json.dumps(snap, indent=1, default=str))
-        os.replace(tmp, self.run_dir / "status.json")
-
-    def _show_status(self, status: StatusSource, tty: bool, log_now: bool) -> None:
-        line = f"{status.line()} | {self.summary()}"
-        if tty:
-            self.out.write("\r" + line + "   ")
-            self.out.flush()
-        elif log_now:
-            print(line, file=self.out, flush=True)
-        self._write_status(status)
-
-
-# ----------------------------------------------------------------- status from heartbeats
-class StatusBoard:
-    """Latest ``status`` body of every service of one run, fed by a Zenoh
-    subscription on ``sage/<run>/status/**`` (schema in docs/wire.md)."""
-
-    def __init__(self, run_id: str, stale_after_s: float = 5.0):
-        self.run_id = run_id
-        self.stale_after_s = stale_after_s
-        self.latest: dict[str, dict] = {}
-        self.rejected = 0
-        self._lock = threading.Lock()
-        self._bus = None
-
-    def on_message(self, _key: str, payload: bytes) -> None:
-        from common import wire
-
-        try:
-            msg = wire.decode(payload, run_id=self.run_id, expect="status")
-        except wire.WireError:
-            self.rejected += 1  # shown in status.json; a bad heartbeat never stops the supervisor
-            return
-        body = dict(msg.body, received=time.monotonic())
-        with self._lock:
-            self.latest[f"{body['role']}/{body['id']}"] = body
-
-    def subscribe(self, connect: Sequence[str], mode: str = "client") -> "StatusBoard":
-        from common import keys
-        from common.transport import Bus
-
-        self._bus = Bus.open(connect=list(connect), mode=mode)
-        self._bus.subscribe(keys.status_all(self.run_id), self.on_message)
-        return self
-
-    def stop_run(self) -> None:
-        """Publish a ``control`` stop to every service of the run (also remote ones)."""
-        from common import keys, wire
-
-        if self._bus is not None:
-            self._bus.publish(keys.control(self.run_id), wire.encode(
-                "control", {"command": "stop", "target": "*"}, run_id=self.run_id, sender="supervisor/0", seq=0))
-
-    def fresh(self) -> dict[str, dict]:
-        now = time.monotonic()
-        with self._lock:
-            return {k: b for k, b in self.latest.items() if now - b["received"] <= self.stale_after_s}
-
-    def snapshot(self) -> dict:
-        with self._lock:
-            latest = {k: {f: v for f, v in b.items() if f != "received"} for k, b in self.latest.items()}
-        return {"members": latest, "rejected": self.rejected, "line": self.line()}
-
-    def line(self) -> str:
-        with self._lock:
-            latest = dict(self.latest)
-        return status_line(self.fresh(), latest)
-
-    def close(self) -> None:
-        if self._bus is not None:
-            self._bus.close()
-            self._bus = None
-
-
-# ----------------------------------------------------------------- SAGE runs
-def default_actor_count() -> int:
-    """One actor per core, leaving one core for the learner and shield (at least 1)."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:
-        cores = os.cpu_count() or 1
-    return max(1, cores - 1)
+        atomic_write_text(self.paths.status, json.dumps(snap, indent=1, default=str))
 
 
 def free_tcp_port(host: str = "127.0.0.1") -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind((host, 0))
         return s.getsockname()[1]
-
-
-def parse_ids(text: str) -> list[int]:
-    """``"0-3,7"`` -> ``[0, 1, 2, 3, 7]``."""
-    out: list[int] = []
-    for part in filter(None, (p.strip() for p in text.split(","))):
-        lo, _, hi = part.partition("-")
-        if not lo.isdigit() or (hi and not hi.isdigit()):
-            raise ValueError(f"bad id range {part!r} (expected e.g. 0-3,7)")
-        out += list(range(int(lo), int(hi or lo) + 1))
-    if not out or len(set(out)) != len(out):
-        raise ValueError(f"bad id list {text!r}: empty or repeated ids")
-    return out
-
-
-def service_specs(config_path: str | Path, roles: Sequence[str] = ROLES, actor_ids: Sequence[int] = (0,),
-                  python: str = sys.executable) -> list[ServiceSpec]:
-    """The documented entry points (docs/wire.md) as supervised services."""
-    bad = set(roles) - set(ROLES)
-    if bad:
-        raise ValueError(f"unknown roles {sorted(bad)}; choose from {ROLES}")
-    cfg = str(config_path)
-    specs = []
-    if "shield" in roles:
-        specs.append(ServiceSpec("shield", [python, "-m", "services.shield", "--config", cfg]))
-    if "learner" in roles:
-        # stopped in the first wave's wake: it checkpoints on SIGTERM
-        specs.append(ServiceSpec("learner", [python, "-m", "services.learner", "--config", cfg], ends_run=True))
-    if "actor" in roles:
-        specs += [ServiceSpec(f"actor-{i}", [python, "-m", "services.actor", "--config", cfg, "--actor-id", str(i)])
-                  for i in actor_ids]
-    return specs
-
-
-def router_spec(port: int, python: str = sys.executable, host: str = "127.0.0.1") -> ServiceSpec:
-    return ServiceSpec("router", [python, "-m", "deploy.router", "--listen", f"tcp/{host}:{port}"],
-                       stop_wave=1, ready_tcp=(host, port))
-
-
-def run_supervised(config_path: str | Path, *, actors: int | None = None, roles: Sequence[str] = ROLES,
-                   actor_ids: Sequence[int] | None = None, supervisor: SupervisorConfig | None = None,
-                   install_signals: bool = True, out=None) -> int:
-    """Run the services of the run config at ``config_path`` as supervised
-    processes until the learner's budget is reached, a signal arrives, or a
-    service exhausts its restart budget. Returns the exit code (0 = finished).
-
-    ``actors`` overrides the config's actor count (the learner waits for one
-    chunk per actor per update). Without ``transport.connect`` in the config a
-    local router is started on a free 127.0.0.1 port. The config the children
-    read is written to ``<run_dir>/supervised_config.json``.
-    """
-    from services.config import TrainConfig
-
-    cfg = TrainConfig.load(config_path)
-    if actors is not None:
-        cfg.actors = int(actors)
-    cfg.mode = "supervised"
-    cfg.actor.exit_on_unhealthy = True  # an actor cut off from the shield exits; we restart it
-    cfg.validate()
-    ids = list(actor_ids) if actor_ids is not None else list(range(cfg.actors))
-    run_dir = Path(cfg.run_dir)
-    specs: list[ServiceSpec] = []
-    if not cfg.transport.connect:
-        port = free_tcp_port()
-        specs.append(router_spec(port))
-        cfg.transport.connect = [f"tcp/127.0.0.1:{port}"]
-        # client mode: everything goes through the router. Peers with gossip
-        # off (common/transport.py) attached to one router do not hear each other.
-        cfg.transport.mode = "client"
-    elif cfg.transport.mode != "client":
-        print(f"supervisor: warning: transport.mode is {cfg.transport.mode!r}; services attached to a router "
-              "should use \"client\" (deploy/README.md)", file=out or sys.stderr)
-    child_config = cfg.save(run_dir / "supervised_config.json")
-    specs += service_specs(child_config, roles, ids)
-    sup = Supervisor(specs, run_dir, supervisor, out=out)
-    board = StatusBoard(cfg.run_id, stale_after_s=max(5.0, 5 * cfg.status_period_s))
-    out = sup.out
-    print(f"supervisor: run {cfg.run_id}, {len(specs)} processes ({', '.join(s.name for s in specs)}), "
-          f"router {cfg.transport.connect[0]}, run dir {run_dir}", file=out, flush=True)
-
-    def open_status():
-        return board.subscribe(cfg.transport.connect)
-
-    def on_finish(status):
-        if status is not None:
-            status.stop_run()  # remote actors of this run stop too
-
-    return sup.run(open_status, on_finish, install_signals=install_signals)
-
-
-# ----------------------------------------------------------------- command line
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", default=None, help="run config JSON (services/config.py); default: a fresh one")
-    p.add_argument("--actors", type=int, default=None,
-                   help=f"number of actors in the run (default: config's value, or cores-1 = {default_actor_count()} "
-                        "for a fresh config)")
-    p.add_argument("--roles", default=",".join(ROLES), help="which services this host runs (default: all)")
-    p.add_argument("--actor-ids", default=None, help="actor ids this host runs, e.g. 2-3 (default: all)")
-    p.add_argument("--connect", action="append", default=None,
-                   help="Zenoh router endpoint, e.g. tcp/10.0.0.1:7447 (repeatable; default: start a local router)")
-    p.add_argument("--metrics-base", type=int, default=None,
-                   help="Prometheus ports: base learner, base+1 shield, base+10+i actor i (e.g. 9400; 0 = off)")
-    fresh = p.add_argument_group("fresh run (without --config)")
-    fresh.add_argument("--scenario", default=None)
-    fresh.add_argument("--method", default=None)
-    fresh.add_argument("--updates", type=int, default=None)
-    fresh.add_argument("--minutes", type=float, default=None)
-    fresh.add_argument("--envs-per-actor", type=int, default=None)
-    fresh.add_argument("--seed", type=int, default=None)
-    fresh.add_argument("--run-id", default=None)
-    fresh.add_argument("--run-dir", default=None)
-
-
-def config_from_args(args) -> Path:
-    """Write the run config the supervisor will use and return its path."""
-    from services.config import TrainConfig
-
-    cfg = TrainConfig.load(args.config) if args.config else TrainConfig(actors=default_actor_count())
-    for name in ("actors", "scenario", "method", "updates", "minutes", "envs_per_actor", "seed", "run_id", "run_dir"):
-        value = getattr(args, name)
-        if value is not None:
-            setattr(cfg, name, value)
-    if args.connect:
-        cfg.transport.connect = list(args.connect)
-        cfg.transport.mode = "client"  # reach the other services through the router
-    if args.metrics_base is not None:
-        base = args.metrics_base
-        cfg.ports.learner = base + METRICS_OFFSETS["learner"] if base else 0
-        cfg.ports.shield = base + METRICS_OFFSETS["shield"] if base else 0
-        cfg.ports.actor_base = base + METRICS_OFFSETS["actor_base"] if base else 0
-    cfg.mode = "supervised"
-    cfg.resolve()
-    return cfg.save(Path(cfg.run_dir) / "config.json")
-
-
-def cmd_up(args) -> int:
-    roles = [r.strip() for r in args.roles.split(",") if r.strip()]
-    try:
-        path = config_from_args(args)
-        ids = parse_ids(args.actor_ids) if args.actor_ids else None
-    except (ValueError, FileNotFoundError) as exc:
-        print(f"sage up: {exc}", file=sys.stderr)
-        return 2
-    try:
-        return run_supervised(path, roles=roles, actor_ids=ids)
-    except RuntimeError as exc:  # e.g. the local router never came up; details are in the run's logs/
-        print(f"sage up: {exc}", file=sys.stderr)
-        return EXIT_GAVE_UP
-
-
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m deploy.supervisor", description="supervise a multi-process SAGE run")
-    add_arguments(p)
-    return cmd_up(p.parse_args(argv))
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -17,9 +17,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from common.algos.config import AlgoConfig
+from common.algos.registry import METHODS
+from common.env.config import EnvConfig
 from common.keys import check_id
 
-METHODS = ("happo", "happo_cbf", "talo_cbf", "sail_cbf", "sage")
 # Evaluation seeds, disjoint from the training envs (1000 * seed + actor id) and each other.
 FINAL_EVAL_SEED = 10_000
 DEPLOY_PROBE_SEED = 30_000
@@ -48,7 +50,7 @@ class PortsConfig:
 class ShieldConfig:
     max_batch: int = 256          # QP rows per solve_cbf_qp call
     window_s: float = 0.002       # wait at most this long for more requests once one arrived
-    backend: str = "default"      # common.qp.BACKENDS name
+    backend: str = "default"      # common.shield.qp.BACKENDS name
 
 
 @dataclass
@@ -132,33 +134,24 @@ class TrainConfig:
     def batch_chunks(self) -> int:
         return self.chunks_per_update or self.actors
 
-    def env_config(self):
-        from common.env.config import EnvConfig
-
+    def env_config(self) -> EnvConfig:
         overrides = dict(self.env)
         overrides["scenario"] = self.scenario  # the run's scenario wins over a stale copy
         return build_dataclass(EnvConfig, overrides)
 
-    def algo_config(self):
-        from common.algos import AlgoConfig
-
+    def algo_config(self) -> AlgoConfig:
         overrides = dict(self.algo)
         overrides.setdefault("seed", self.seed)
         return build_dataclass(AlgoConfig, overrides)
 
     def resolve(self) -> "TrainConfig":
-        """Fill run id / run dir and expand env/algo overrides to full values
-        (when their owners' modules are importable)."""
+        """Fill run id / run dir and expand env/algo overrides to full values."""
         if not self.run_id:
             self.run_id = time.strftime("%Y%m%d-%H%M%S") + "-" + secrets.token_hex(3)
         if not self.run_dir:
             self.run_dir = str(Path("runs") / self.run_id)
         for attr, make in (("env", self.env_config), ("algo", self.algo_config)):
-            try:
-                cfg = make()
-            except ImportError:
-                continue  # owner module not available in this checkout; keep overrides
-            setattr(self, attr, json.loads(json.dumps(dataclasses.asdict(cfg), default=_json_default)))
+            setattr(self, attr, json.loads(json.dumps(dataclasses.asdict(make()), default=_json_default)))
         return self.validate()
 
     def to_json(self) -> str:

@@ -56,7 +56,7 @@ class FakeBatchEnv:
         return out
 
 
-def fake_propose(params, obs, C, c, row_mask, fixed_mask, human_action, kappa, rng, mode, use_sail=True):
+def fake_propose(params, obs, rows, human_action, rng, mode="train", *, kappa=0.0, use_sail=True):
     K = obs.shape[0]
     a_st = np.tanh(obs.reshape(K, -1)[:, :D] * params["carrier_0/W"].ravel()[0])
     a_bar = a_st.copy()
@@ -65,8 +65,9 @@ def fake_propose(params, obs, C, c, row_mask, fixed_mask, human_action, kappa, r
             "leaf": np.zeros((K, N), np.int64), "nodes": None, "sides": None}
 
 
-def fake_solve(a_prop, C, c, row_mask, fixed_mask):
+def fake_solve(a_prop, rows):
     """Exact for the fake env's rows (one lower bound per coordinate) + box."""
+    C, c, row_mask = rows.C, rows.c, rows.row_mask
     a = np.clip(a_prop, -1, 1)
     for j in range(C.shape[1]):
         for k in range(D):

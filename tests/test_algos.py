@@ -8,10 +8,11 @@ import pytest
 import torch
 
 from common.algos import AlgoConfig, make_method
-from common.algos.methods import METHODS, sail_center_implicit
+from common.algos.registry import METHODS
+from common.policy.sail import sail_center_implicit
 from common.algos.synthetic import BanditTask, collect
-from common.sail import SailConfig, sail_project
-from common.talo import individual_gradient, talo_gap, unflatten_like
+from common.policy.sail import SailConfig, sail_project
+from common.algos.talo import individual_gradient, talo_gap, unflatten_like
 
 OBS = 6
 
@@ -152,7 +153,7 @@ def test_talo_step_decreases_gap_relative_to_independent_step():
     """First-order check on a fixed minibatch: moving along g_TALO lowers W_gap
     at rate <= -sigma*W, and faster than moving along g_ind. sigma is chosen so
     that the correction is active (Delta_gap > 0)."""
-    from common.talo import talo_direction, talo_gap
+    from common.algos.talo import talo_direction, talo_gap
 
     m, mb = prepared("sage", seed=0)
     L, team = team_surrogates(m, mb)

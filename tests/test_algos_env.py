@@ -1,4 +1,4 @@
-"""Learner on a real environment batch: actors' step logic (common.rollout),
+"""Learner on a real environment batch: actors' step logic (common.policy.rollout),
 the exact QP shield, MuJoCo transitions with time-limit truncation."""
 from __future__ import annotations
 
@@ -12,8 +12,9 @@ from common.algos import AlgoConfig, make_method
 @pytest.mark.parametrize("name", ["sage", "happo_cbf"])
 def test_update_on_env_batch_with_truncation(name):
     from common.env import BatchEnv, EnvConfig
-    from common.qp import solve_cbf_qp
-    from common.rollout import propose
+    from common.policy.rollout import propose
+    from common.safety_rows import SafetyRows
+    from common.shield.qp import shield_actions
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -27,9 +28,10 @@ def test_update_on_env_batch_with_truncation(name):
         cols: dict[str, list] = {}
         for _ in range(12):
             s = m.actor_settings(0.3)
-            p = propose(m.policy_params(), o["obs"], o["C"], o["c"], o["row_mask"], o["fixed_mask"],
-                        o["human_action"], s["kappa"], rng, "train", use_sail=m.uses_sail)
-            q = solve_cbf_qp(p["a_prop"], o["C"], o["c"], o["row_mask"], o["fixed_mask"])
+            rows = SafetyRows.of(o)
+            p = propose(m.policy_params(), o["obs"], rows, o["human_action"], rng, "train",
+                        kappa=s["kappa"], use_sail=m.uses_sail)
+            q = shield_actions(p["a_prop"], rows)
             step = {k: o[k] for k in ("obs", "state", "C", "c", "row_mask", "fixed_mask")}
             step.update({k: p[k] for k in ("a_st", "a_bar", "a_prop", "logp", "leaf")}, a_exec=q.a_exec)
             o = env.step(q.a_exec)

@@ -8,7 +8,7 @@ from common.audit.config import AuditConfig
 from common.audit.params import BadPolicyParams, load_params_file, save_params_json, split_carriers
 from common.audit.synthetic import random_team_params
 from common.audit.tree_view import describe_tree, format_linear, leaf_path, tree_dot, tree_png, tree_text
-from common.cli import main
+from sage.cli import main
 
 
 def test_format_linear_orders_by_magnitude_and_folds_the_rest():

@@ -1,4 +1,4 @@
-"""common/system_bench.py: the measuring parts of `sage bench system`.
+"""sage/bench/system.py: the measuring parts of `sage bench system`.
 
 The whole benchmark starts a dozen processes (over a minute on 2 cores), so
 it is run by hand (`sage bench system --json`); here each of its parts is
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from common import keys, wire
-from common.system_bench import (QUICK, StepMeter, SystemBench, SystemBenchConfig, config_from_args, quantiles_ms,
+from sage.bench.system import (QUICK, StepMeter, SystemBench, SystemBenchConfig, config_from_args, quantiles_ms,
                                  register, summary_table)
 
 
@@ -74,15 +74,16 @@ def test_step_meter_times_out_and_propagates_failures():
 
 
 def test_local_qp_actor_executes_the_exact_qp():
-    from common.qp import qp_violation, solve_cbf_qp
-    from common.qp_random import random_cbf_problems
-    from common.system_bench import _local_qp_actor_class
+    from common.safety_rows import SafetyRows
+    from common.shield.qp import qp_violation, solve_cbf_qp
+    from common.shield.random_problems import random_cbf_problems
+    from sage.bench.system import LocalQPActor
     from services.config import TrainConfig
 
-    actor = _local_qp_actor_class()(TrainConfig(run_id="r", method="happo_cbf"), None, 0)
+    actor = LocalQPActor(TrainConfig(run_id="r", method="happo_cbf"), None, 0)
     a, C, c, _ = random_cbf_problems(np.random.default_rng(1), 16)
     rows, fixed = np.ones(c.shape, bool), np.zeros(a.shape, bool)
-    a_exec = actor.filter_actions(a, C, c, rows, fixed)
+    a_exec = actor.filter_actions(a, SafetyRows(C, c, rows, fixed))
     ref = solve_cbf_qp(a, C, c, rows, fixed)
     np.testing.assert_allclose(a_exec, ref.a_exec, atol=1e-12)
     assert np.all(qp_violation(a_exec, C, c, rows) <= 1e-6)
@@ -105,7 +106,7 @@ class _ParamsPublisher:
 
 
 def test_shield_round_trip_and_broadcast_in_process(tmp_path):
-    from common.qp import solve_cbf_qp
+    from common.shield.qp import solve_cbf_qp
     from common.transport import Bus
     from services.shield.service import ShieldService
 

@@ -5,7 +5,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from common.env.config import PAYLOAD_HALF, PAYLOAD_POINTS_LOCAL, perimeter_points
+from common.env.layout import PAYLOAD_HALF, PAYLOAD_POINTS_LOCAL, perimeter_points
 from common.env.safety import SafetyConfig, point_box_distance
 
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 from scipy import integrate, stats
 
-from common.proposal import (
+from common.policy.proposal import (
     ProposalConfig,
     proposal_entropy,
     proposal_log_prob,

@@ -9,7 +9,7 @@ import pytest
 import quadprog
 from scipy.optimize import nnls
 
-from common.qp import (
+from common.shield.qp import (
     BACKENDS,
     DEFAULT_BACKEND,
     STATUS_INFEASIBLE,
@@ -19,7 +19,7 @@ from common.qp import (
     qp_violation,
     solve_cbf_qp,
 )
-from common.qp_random import random_cbf_problems
+from common.shield.random_problems import random_cbf_problems
 
 D = 9
 TOL = 1e-6

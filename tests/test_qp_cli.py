@@ -1,7 +1,7 @@
 """`sage bench qp` prints the JSON the issue asks for (tiny batch, no timing asserts)."""
 import json
 
-from common.cli import main
+from sage.cli import main
 
 
 def test_bench_qp_json(capsys):

@@ -4,7 +4,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from common.qp import BACKENDS, STATUS_INFEASIBLE, STATUS_OPTIMAL, qp_violation, solve_cbf_qp
+from common.shield.qp import BACKENDS, STATUS_INFEASIBLE, STATUS_OPTIMAL, qp_violation, solve_cbf_qp
 
 D = 9
 unit_floats = st.floats(-1.0, 1.0, allow_nan=False, allow_subnormal=False)

@@ -3,7 +3,7 @@ import json
 
 import pytest
 
-from common.report import EVAL_KEYS, load_results, summarize, table_markdown, write_report
+from sage.report import EVAL_KEYS, load_results, summarize, table_markdown, write_report
 
 
 def _result(tmp_path, method, scenario, seed, sr, col, curve_scale=1.0):
@@ -58,7 +58,7 @@ def test_malformed_result_names_file(tmp_path):
 
 
 def test_training_exposure_pools_episodes_over_updates():
-    from common.report import Result, training_exposure
+    from sage.report import Result, training_exposure
 
     curve = [{"env_steps": 1000, "episodes": 4, "ep_collision_steps_mean": 2.0, "ep_drop_mean": 0.5},
              {"env_steps": 2000, "episodes": 6, "ep_collision_steps_mean": 0.0, "ep_drop_mean": 0.0}]

@@ -1,10 +1,10 @@
-"""Predictor honesty (common/env/honesty.py): shielded random actions vs the true next-state barriers."""
+"""Predictor honesty (common/evaluation/honesty.py): shielded random actions vs the true next-state barriers."""
 import numpy as np
 import pytest
 
 from common.env import safety
-from common.env.config import PAIR_REST
-from common.env.honesty import _PredictorWorld, measure_honesty, row_barriers
+from common.env.layout import PAIR_REST
+from common.evaluation.honesty import _PredictorWorld, measure_honesty, row_barriers
 
 
 def test_row_barrier_lookup_reproduces_row_h():

@@ -9,7 +9,7 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from common.sail import SailConfig, absorb_fixed, normalize_rows, sail_project, sail_project_np
+from common.policy.sail import SailConfig, absorb_fixed, normalize_rows, sail_project, sail_project_np
 
 D = 9
 FAST = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])

@@ -10,13 +10,14 @@ import pytest
 from prometheus_client import CollectorRegistry
 
 sys.path.insert(0, str(Path(__file__).parent))
+from common.safety_rows import SafetyRows  # noqa: E402
 from services_fakes import FakeBatchEnv, FakeMethod, fake_propose, fake_solve  # noqa: E402
 
 from common import keys, wire  # noqa: E402
 from common.transport import Bus  # noqa: E402
 from services.actor.service import EXIT_UNHEALTHY, ActorService  # noqa: E402
 from services.config import ActorConfig, ShieldConfig, TrainConfig  # noqa: E402
-from services.inprocess import run_inprocess  # noqa: E402
+from services.launcher import run_inprocess  # noqa: E402
 from services.learner.service import LearnerService  # noqa: E402
 from services.shield.service import ShieldService  # noqa: E402
 
@@ -103,7 +104,7 @@ def test_shield_micro_batches_and_replies_per_request(tmp_path, bus):
     replies = _ask_concurrently(cfg, bus, reqs)
     for r, rep in zip(reqs, replies):
         body = wire.decode(rep.ok, run_id=cfg.run_id, expect="shield_rep").body
-        np.testing.assert_allclose(body["a_exec"], fake_solve(*r.values()).a_exec)
+        np.testing.assert_allclose(body["a_exec"], fake_solve(r["a_prop"], SafetyRows.of(r)).a_exec)
     # the window closes when max_batch (= all 10 rows) arrived: one solve for four askers
     assert calls == [10]
     cfg.shield.window_s = 0.01  # single requests below: don't wait for company
@@ -229,11 +230,11 @@ def test_learner_counts_rejected_and_stale_chunks_and_keeps_running(tmp_path, bu
 
 
 def test_shield_with_the_real_qp_matches_a_direct_call(tmp_path, bus):
-    from common.qp import solve_cbf_qp
+    from common.shield.qp import solve_cbf_qp
 
     cfg = make_cfg(tmp_path)
     stop = threading.Event()
-    shield = ShieldService(cfg, bus, stop=stop)  # default: common.qp.solve_cbf_qp
+    shield = ShieldService(cfg, bus, stop=stop)  # default: common.shield.qp.solve_cbf_qp
     th = threading.Thread(target=shield.run, daemon=True)
     th.start()
     wait_for(lambda: shield.state == "running", timeout=60)

@@ -4,8 +4,8 @@ from pathlib import Path
 
 import pytest
 
-from common.cli import main
-from common.report import EVAL_KEYS
+from sage.cli import main
+from sage.report import EVAL_KEYS
 
 
 @pytest.fixture(scope="module")
@@ -35,8 +35,8 @@ def test_eval_records_traces_for_the_audit(tiny_run, tmp_path, capsys):
 
 @pytest.mark.slow
 def test_suite_runs_reports_and_resumes(tmp_path):
-    from common.report import write_report
-    from common.suite import SuiteConfig, run_suite
+    from sage.report import write_report
+    from sage.suite import SuiteConfig, run_suite
 
     cfg = SuiteConfig(methods=["happo"], scenarios=["narrow_gate"], seeds=[0], minutes_per_run=5.0,
                       updates_per_run=2, eval_episodes=1, envs_per_actor=2, workers=1,
@@ -60,12 +60,12 @@ def test_eval_accepts_a_checkpoint_file(tiny_run, capsys):
 
 
 def test_proposal_violation_is_split_by_row_kind():
-    from common.evaluation import evaluate_policy
+    from common.evaluation.deployment import evaluate_policy
     from services.config import TrainConfig
-    from services.learner.service import _default_method
+    from services.learner.service import build_method
 
     cfg = TrainConfig(run_id="t", method="sage").resolve()
-    params = _default_method(cfg).policy_params()   # untrained trees: most proposals violate a row
+    params = build_method(cfg).policy_params()   # untrained trees: most proposals violate a row
     res = evaluate_policy(params, cfg.env_config(), 2, seed=3, shielded=True, max_steps=40)
     by_kind = res["proposal_violation_by_kind"]
     assert set(by_kind) == {"carrier_wall", "payload_wall", "formation", "any_wall"}
@@ -90,13 +90,13 @@ def test_eval_beside_a_human_partner_holds_the_human_block(tiny_run, capsys):
 def test_evaluation_with_a_human_never_corrects_the_human_block(monkeypatch):
     import dataclasses
 
-    import common.qp as qp
-    from common.evaluation import evaluate_policy
+    import common.shield.qp as qp
+    from common.evaluation.deployment import evaluate_policy
     from services.config import TrainConfig
-    from services.learner.service import _default_method
+    from services.learner.service import build_method
 
     cfg = TrainConfig(run_id="t", method="sage").resolve()
-    params = _default_method(cfg).policy_params()
+    params = build_method(cfg).policy_params()
     seen = []
     real = qp.solve_cbf_qp
 
@@ -129,7 +129,7 @@ def test_learner_logs_a_deterministic_deployment_probe(tmp_path):
 
 
 def test_set_train_field_is_checked():
-    from services.cli import apply_override
+    from sage.train import apply_override
     from services.config import TrainConfig
 
     cfg = TrainConfig()

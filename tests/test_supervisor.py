@@ -1,4 +1,4 @@
-"""deploy/supervisor.py: restarts with backoff, the restart budget, clean
+"""deploy/supervisor.py and deploy/sage_run.py: restarts with backoff, the restart budget, clean
 shutdown with no orphans, and a real multi-process run (router, shield,
 learner, two actors) that survives a killed actor.
 
@@ -21,9 +21,10 @@ from pathlib import Path
 
 import pytest
 
-from deploy.supervisor import (EXIT_GAVE_UP, METRICS_OFFSETS, ServiceSpec, StatusBoard, Supervisor,
-                               SupervisorConfig, add_arguments, config_from_args, free_tcp_port, parse_ids,
-                               service_specs, status_line)
+from common.status import StatusBoard, status_line
+from deploy.sage_run import METRICS_OFFSETS, parse_ids, service_specs
+from deploy.supervisor import EXIT_GAVE_UP, ServiceSpec, Supervisor, SupervisorConfig, free_tcp_port
+from sage.train import add_up_arguments, up_config_from_args
 
 PY = sys.executable
 ROOT = Path(__file__).resolve().parents[1]
@@ -148,12 +149,12 @@ def test_metric_ports_follow_the_documented_convention(tmp_path):
     import re
 
     p = argparse.ArgumentParser()
-    add_arguments(p)
+    add_up_arguments(p)
     args = p.parse_args(["--metrics-base", "9400", "--actors", "3", "--run-dir", str(tmp_path / "r"),
                          "--connect", "tcp/10.0.0.1:7447"])
     from services.config import TrainConfig
 
-    cfg = TrainConfig.load(config_from_args(args))
+    cfg = TrainConfig.load(up_config_from_args(args))
     ports = {"learner": cfg.ports.learner, "shield": cfg.ports.shield,
              **{f"actor-{i}": cfg.ports.actor_base + i for i in range(3)}}  # services/base.py run_entry
     assert ports == {"learner": 9400, "shield": 9401, "actor-0": 9410, "actor-1": 9411, "actor-2": 9412}
@@ -318,7 +319,7 @@ def test_supervised_run_survives_a_killed_actor(tmp_path):
     base = free_tcp_port()  # Prometheus: base learner, base+1 shield, base+10+i actor i
     cfg.ports.learner, cfg.ports.shield, cfg.ports.actor_base = base, base + 1, base + 10
     path = cfg.resolve().save(run / "config.json")
-    proc = subprocess.Popen([PY, "-m", "deploy.supervisor", "--config", str(path)], cwd=ROOT,
+    proc = subprocess.Popen([PY, "-m", "sage", "up", "--config", str(path)], cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         wait_for(lambda: _member(run, "learner/0").get("version", -1) >= 2, 100, "two parameter updates", 0.2)
@@ -361,7 +362,7 @@ def test_sage_train_supervised_runs_the_method_to_its_update_budget(tmp_path, me
     """`sage train --mode supervised`: the method's learner, shield and actor run as
     separate processes, stop at the update budget, and the run is evaluated."""
     run = tmp_path / "run"
-    proc = subprocess.run([PY, "-m", "common.cli", "train", "--mode", "supervised", "--method", method,
+    proc = subprocess.run([PY, "-m", "sage.cli", "train", "--mode", "supervised", "--method", method,
                            "--updates", "2", "--actors", "1", "--envs-per-actor", "2", "--chunk-len", "8",
                            "--eval-episodes", "1", "--metrics-port", "0", "--run-dir", str(run), "--quiet"],
                           cwd=ROOT, capture_output=True, text=True, timeout=300)

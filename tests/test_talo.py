@@ -1,4 +1,4 @@
-"""TALO math (common/talo.py) against finite differences and the paper's conditions."""
+"""TALO math (common/algos/talo.py) against finite differences and the paper's conditions."""
 from __future__ import annotations
 
 import numpy as np
@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from common.talo import (
+from common.algos.talo import (
     cosine, individual_gradient, talo_direction, talo_gap, talo_project, unflatten_like,
 )
 

@@ -3,17 +3,16 @@ import numpy as np
 import pytest
 import torch
 
-from common.tree import (
+from common.policy.tree import (
     FORMAT_VERSION,
-    HardObliqueTree,
     InvalidParams,
-    TeamPolicy,
     TreeConfig,
     carrier_params,
     team_forward_np,
     tree_forward_np,
     validate_params,
 )
+from common.policy.tree_torch import HardObliqueTree, TeamPolicy
 
 
 def _team(n=3, obs_dim=11, depth=4, seed=0, **cfg):

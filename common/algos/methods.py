@@ -1,12 +1,6 @@
 """The five learning methods of Sec. III / IV on hard-tree actors.
 
-| name        | executed action | proposal center              | actor update                     |
-|-------------|-----------------|------------------------------|----------------------------------|
-| happo       | a_prop          | a_ST (identity)              | HAPPO sequential, per carrier    |
-| happo_cbf   | QP(a_prop)      | a_ST (identity)              | HAPPO sequential, per carrier    |
-| talo_cbf    | QP(a_prop)      | a_ST (identity)              | TALO joint step (Eq. talo_projection) |
-| sail_cbf    | QP(a_prop)      | Pi_kappa(x, a_ST) (SAIL)     | HAPPO sequential, per carrier    |
-| sage        | QP(a_prop)      | Pi_kappa(x, a_ST) (SAIL)     | TALO joint step                  |
+Which method switches on what (shield, SAIL, TALO) is ``common.algos.registry``.
 
 The shield itself runs on the actor side; for the learner ``shielded`` only
 records that rewards come from ``a_exec``. The likelihood is always the
@@ -19,7 +13,7 @@ the (detached) product of the updated ratios of the carriers before it, then
 too (the paper builds SAIL+CBF on the HAPPO baseline); a carrier's center is
 computed with its partners' tree outputs detached.
 
-TALO methods update all carriers jointly along ``g_TALO`` (common/talo.py),
+TALO methods update all carriers jointly along ``g_TALO`` (common/algos/talo.py),
 one HVP per minibatch on the full actor parameter vector. The entropy bonus
 gradient is added after the projection (it only touches ``log_std``).
 
@@ -37,23 +31,16 @@ from torch import Tensor, nn
 
 from common.algos.config import AlgoConfig, kappa_schedule, tau_schedule
 from common.algos.critic import TeamCritic, ValueNormalizer, compute_gae, next_values
-from common.proposal import proposal_entropy, proposal_log_prob
-from common.sail import SailConfig, absorb_fixed, normalize_rows, sail_project, sail_project_np
-from common.talo import cosine, flat_grad, talo_direction, talo_gap, unflatten_like
-from common.tree import TeamPolicy, TreeConfig
+from common.algos.registry import method_spec
+from common.policy.proposal import proposal_entropy, proposal_log_prob
+from common.policy.sail import SailConfig, sail_center_implicit, sail_project
+from common.algos.talo import cosine, flat_grad, talo_direction, talo_gap, unflatten_like
+from common.policy.tree import TreeConfig
+from common.policy.tree_torch import TeamPolicy
+from common.spec import CARRIER_ACT_DIM, N_CARRIERS
 
-N_AGENTS = 3
-ACT_DIM = 3
 STATE_FORMAT_VERSION = 1
 
-METHOD_FLAGS: dict[str, dict[str, bool]] = {
-    "happo": dict(shielded=False, uses_sail=False, uses_talo=False),
-    "happo_cbf": dict(shielded=True, uses_sail=False, uses_talo=False),
-    "talo_cbf": dict(shielded=True, uses_sail=False, uses_talo=True),
-    "sail_cbf": dict(shielded=True, uses_sail=True, uses_talo=False),
-    "sage": dict(shielded=True, uses_sail=True, uses_talo=True),
-}
-METHODS = tuple(METHOD_FLAGS)
 
 # Batch arrays the learner reads, with their shapes after the [T, K] axes.
 # "final_obs" is needed only where some step is truncated.
@@ -87,17 +74,13 @@ class Method:
     """One learner: hard-tree team policy, centralized critic and optimizers."""
 
     def __init__(self, name: str, cfg: AlgoConfig, obs_dim: int, state_dim: int,
-                 n_agents: int = N_AGENTS):
-        if name not in METHOD_FLAGS:
-            raise ValueError(f"unknown method {name!r}; choose one of {', '.join(METHODS)}")
+                 n_agents: int = N_CARRIERS):
+        spec = method_spec(name)
         if obs_dim < 1 or state_dim < 0:
             raise ValueError(f"bad dims obs_dim={obs_dim}, state_dim={state_dim}")
         self.name, self.cfg = name, cfg
         self.obs_dim, self.state_dim, self.n_agents = int(obs_dim), int(state_dim), n_agents
-        flags = METHOD_FLAGS[name]
-        self.shielded: bool = flags["shielded"]
-        self.uses_sail: bool = flags["uses_sail"]
-        self.uses_talo: bool = flags["uses_talo"]
+        self.shielded, self.uses_sail, self.uses_talo = spec.shielded, spec.uses_sail, spec.uses_talo
         with torch.random.fork_rng():
             torch.manual_seed(cfg.seed)
             self.policy = TeamPolicy(
@@ -115,7 +98,7 @@ class Method:
         # one Adam per carrier (HARL style; TALO steps all of them together)
         self.actor_opts = [torch.optim.Adam(g, lr=cfg.actor_lr, eps=1e-5) for g in self.groups]
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr, eps=1e-5)
-        # the learner's SAIL forward must equal the actors' (common/rollout.py defaults)
+        # the learner's SAIL forward must equal the actors' (common/policy/rollout.py defaults)
         self.sail_config = SailConfig()
         self.gen = torch.Generator().manual_seed(cfg.seed + 1)
         self.updates = 0
@@ -222,7 +205,7 @@ class Method:
             logp_old=torch.as_tensor(np.asarray(batch["logp"]), dtype=f64).reshape(B, -1),
             adv=adv_t.reshape(B),
             ret=ret_norm.reshape(B),
-            active=~fixed.view(B, self.n_agents, ACT_DIM).any(-1),
+            active=~fixed.view(B, self.n_agents, CARRIER_ACT_DIM).any(-1),
         )
         return data, self._batch_diagnostics(batch, adv, ret)
 
@@ -238,7 +221,7 @@ class Method:
             raise ValueError(f"batch['reward'] must be [T,K], got {np.shape(batch['reward'])}")
         M = np.shape(batch["C"])[2] if np.ndim(batch["C"]) == 4 else -1
         dims = {"T": T, "K": K, "N": self.n_agents, "O": self.obs_dim, "M": M,
-                "D": self.n_agents * ACT_DIM}
+                "D": self.n_agents * CARRIER_ACT_DIM}
         for key, tail in _REQUIRED.items():
             want = (T, K) + tuple(dims[a] for a in tail)
             if np.shape(batch[key]) != want:
@@ -364,7 +347,7 @@ class Method:
         for i in order:
             self.last_happo_factors[i] = factor.clone()
             tree = self.trees[i]
-            block = slice(ACT_DIM * i, ACT_DIM * (i + 1))
+            block = slice(CARRIER_ACT_DIM * i, CARRIER_ACT_DIM * (i + 1))
             own = tree(mb.obs[:, i], tau).action
             a_st = torch.cat([a_st_cache[:, :block.start], own, a_st_cache[:, block.stop:]], dim=-1)
             log_std = torch.cat([t.log_std if j == i else t.log_std.detach()
@@ -459,44 +442,6 @@ class Method:
         self.critic_opt.load_state_dict(state["critic_opt"])
         self.updates = int(state["updates"])
         self.gen.set_state(state["rng"])
-
-
-def sail_center_implicit(a_st: Tensor, C: Tensor, c: Tensor, mask: Tensor, kappa: float,
-                         fixed: Tensor, human: Tensor, config: SailConfig,
-                         x_star: Tensor | None = None) -> Tensor:
-    """SAIL center (Eq. sail_projection) with implicit-function gradients.
-
-    Forward: the actors' own numpy solver (common.sail.sail_project_np, same
-    config), so the learner's center equals the one the behaviour log-probs
-    were computed with. Graph: one Newton step taken from that (constant)
-    solution x*,
-
-        x = x* - H^{-1} [(x* - a_ST) - kappa C_J^T r_J(x*)],  H = I + kappa C_J^T C_J,
-
-    whose value is x* (the gradient vanishes there) and whose Jacobian in
-    a_ST is (I + kappa C_J^T C_J)^{-1}, Eq. (sail_jacobian) of the ideal
-    minimizer. It equals the unrolled map's Jacobian once its last full
-    Newton step keeps the active set (see common/sail.py), at the cost of one
-    batched 9x9 solve instead of differentiating every unrolled step.
-    ``x_star`` may pass a forward solution already computed for these values.
-    """
-    a64 = a_st.double()
-    if x_star is None:
-        x_star = torch.as_tensor(sail_project_np(
-            a64.detach().cpu().numpy(), C.cpu().numpy(), c.cpu().numpy(), mask.cpu().numpy(), kappa,
-            n_newton=config.n_newton, damping=config.damping,
-            fixed_mask=fixed.cpu().numpy(), fixed_action=human.cpu().numpy(), config=config,
-        ), dtype=torch.float64, device=a_st.device)
-    x_star = x_star.detach().double()
-    a = torch.where(fixed, human.double(), a64)
-    Cf, cf = absorb_fixed(C.double(), c.double(), fixed, human.double())
-    Cn, cn, keep = normalize_rows(Cf, cf, mask, config.row_tol)
-    r = cn - torch.einsum("bmd,bd->bm", Cn, x_star)
-    act = ((r > 0) & keep).double()
-    Ca = Cn * act[..., None]
-    H = torch.eye(a.shape[1], dtype=torch.float64) + kappa * torch.einsum("bmd,bme->bde", Ca, Ca)
-    grad = (x_star - a) - kappa * torch.einsum("bm,bmd->bd", r * act, Cn)
-    return x_star - torch.linalg.solve(H, grad[..., None])[..., 0]
 
 
 def make_method(name: str, cfg: AlgoConfig | None, obs_dim: int, state_dim: int) -> Method:

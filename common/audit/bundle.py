@@ -4,7 +4,7 @@ Contents:
   trees.json         the trees, human-readable: every node's predicate with feature
                      names and its unit split vector / threshold, every leaf's
                      affine command (K, beta) and bias command, action bounds;
-  sage_qp/           the exact joint CBF-QP: common/qp.py and the common modules it
+  sage_qp/           the exact joint CBF-QP: common/shield/qp.py and the common modules it
                      imports, copied with only those imports made package-relative;
   bundle_runtime.py  the runtime (verbatim copy of common/audit/bundle_runtime.py),
                      numpy + sage_qp only;
@@ -62,8 +62,9 @@ _FORBIDDEN = ("torch", "zenoh", "services")
 
 
 def _project_imports(source: str, path: Path) -> list[str]:
-    """Names X of every ``from common.X import ...`` in a QP source file; rejects anything else
-    that would tie the bundle to the project, torch or Zenoh."""
+    """Dotted names ``common....`` of every ``from common.X[.Y] import ...`` in a QP
+    source file; rejects anything else that would tie the bundle to the project,
+    torch or Zenoh."""
     found = []
     for node in ast.walk(ast.parse(source)):
         if isinstance(node, ast.Import):
@@ -75,36 +76,39 @@ def _project_imports(source: str, path: Path) -> list[str]:
             if node.level or mod.split(".")[0] in _FORBIDDEN:
                 raise RuntimeError(f"{path}: 'from {'.' * node.level}{mod} import' cannot go into a bundle")
             if mod.startswith("common."):
-                if mod.count(".") != 1:
-                    raise RuntimeError(f"{path}: bundles copy only flat common.* modules, not {mod}")
-                found.append(mod.split(".")[1])
+                found.append(mod)
     return found
 
 
 def qp_package_sources() -> dict[str, str]:
     """The exact CBF-QP code as a self-contained package: file name -> source.
 
-    ``common/qp.py`` becomes ``__init__.py``; every ``common.X`` module it (transitively)
-    imports is copied as ``X.py`` with ``from common.X import`` rewritten to ``from .X import``.
-    Nothing else changes, so the bundle runs the same solver code as the training stack.
+    ``common/shield/qp.py`` becomes ``__init__.py``; every ``common.*`` module it
+    (transitively) imports is copied flat as ``<last name>.py`` with its
+    ``from common.<...>.X import`` rewritten to ``from .X import``. Nothing else
+    changes, so the bundle runs the same solver code as the training stack.
     """
     import common
 
-    root = Path(common.__file__).parent
+    root = Path(common.__file__).parent.parent
+    top = "common.shield.qp"
     sources: dict[str, str] = {}
-    todo = ["qp"]
+    todo = [top]
     while todo:
         name = todo.pop()
         if name in sources:
             continue
-        path = root / f"{name}.py"
+        path = root.joinpath(*name.split(".")).with_suffix(".py")
         text = path.read_text()
         deps = _project_imports(text, path)
         for dep in set(deps):
-            text = re.sub(rf"\bfrom common\.{dep} import", f"from .{dep} import", text)
+            text = re.sub(rf"\bfrom {re.escape(dep)} import", f"from .{dep.rsplit('.', 1)[1]} import", text)
         sources[name] = text
         todo += deps
-    return {("__init__" if n == "qp" else n) + ".py": src for n, src in sources.items()}
+    flat = {("__init__" if n == top else n.rsplit(".", 1)[1]) + ".py": src for n, src in sources.items()}
+    if len(flat) != len(sources):
+        raise RuntimeError(f"QP modules {sorted(sources)} do not flatten to distinct file names")
+    return flat
 
 
 def _write_if_changed(path: Path, text: str) -> None:

@@ -2,7 +2,7 @@
 
 The wire format is a flat ``dict[str, np.ndarray]`` with keys ``carrier_{i}/W``,
 ``carrier_{i}/b``, ``carrier_{i}/K``, ``carrier_{i}/beta`` and the action bounds
-``carrier_{i}/c_a``, ``carrier_{i}/s_a`` (docs/interfaces.md, common/tree.py).
+``carrier_{i}/c_a``, ``carrier_{i}/s_a`` (docs/interfaces.md, common/policy/tree.py).
 This module only reads it; it never imports torch unless asked to open a
 torch checkpoint.
 """
@@ -130,23 +130,6 @@ def _find_flat_params(obj, depth: int = 0):
     return None
 
 
-def _params_from_policy_state(ckpt, path: Path) -> dict:
-    """Learner checkpoints hold the TeamPolicy state dict (``ckpt["method"]["policy"]``, keys
-    ``trees.{i}.W`` ...): rebuild the TeamPolicy and use its own ``export_params``."""
-    from common.tree import TeamPolicy
-
-    state = ckpt.get("method", {}).get("policy") if isinstance(ckpt, dict) else None
-    if not isinstance(state, dict) or "trees.0.W" not in state:
-        raise BadPolicyParams(f"{path}: checkpoint holds neither flat policy params ('carrier_0/W') "
-                              "nor a TeamPolicy state ('method'/'policy'/'trees.0.W')")
-    n_agents = 1 + max(int(k.split(".")[1]) for k in state if k.startswith("trees."))
-    W, K = state["trees.0.W"], state["trees.0.K"]
-    depth = int(round(np.log2(W.shape[0] + 1)))
-    policy = TeamPolicy(n_agents, int(W.shape[1]), act_dim=int(K.shape[1]), depth=depth)
-    policy.load_state_dict(state)
-    return policy.export_params()
-
-
 def _to_numpy(value):
     if hasattr(value, "detach"):  # torch tensor, only present when a checkpoint was loaded
         return value.detach().cpu().numpy()
@@ -177,7 +160,13 @@ def load_params_file(path: str | Path) -> dict[str, np.ndarray]:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
         raw = _find_flat_params(ckpt)
         if raw is None:
-            raw = _params_from_policy_state(ckpt, path)
+            from common.policy.tree_torch import policy_params_from_checkpoint
+
+            try:
+                raw = policy_params_from_checkpoint(ckpt)
+            except ValueError as exc:
+                raise BadPolicyParams(f"{path}: neither flat policy params ('carrier_0/W') nor a learner "
+                                      f"checkpoint ({exc})") from None
     params = {k: _to_numpy(v) for k, v in raw.items()}
     split_carriers(params)  # validate early, with a clear message
     return params

@@ -12,10 +12,13 @@ metadata is one JSON string.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from common.audit.params import feature_names
+from common.evaluation.deployment import evaluate_policy
 
 RECORDING_VERSION = 1
 _PARAM_PREFIX = "params::"
@@ -106,70 +109,59 @@ def load(path: str | Path) -> Recording:
     return Recording.load(path)
 
 
+class Recorder:
+    """Collects a ``Recording`` from the deployment loop
+    (``common.evaluation.deployment.evaluate_policy(..., recorder=Recorder())``):
+    every live step of each env's first episode, and that episode's metrics."""
+
+    def __init__(self) -> None:
+        self._steps: dict[str, list] = {n: [] for n in Recording._ARRAYS}
+        self._t: np.ndarray | None = None
+        self._metrics: dict[int, dict] = {}
+        self._env = None
+        self._goal_xy: np.ndarray | None = None
+
+    def on_step(self, env, out, rows, decision, a_exec, active, live) -> None:
+        if self._env is None:
+            self._env = env
+            self._goal_xy = np.asarray(env.goal_xy, np.float64).copy()  # goals of the first episodes
+            self._t = np.zeros(env.K, dtype=np.int64)
+        step = {"episode": np.arange(env.K), "t": self._t, "obs": out["obs"], "nodes": decision["nodes"],
+                "sides": decision["sides"], "leaf": decision["leaf"], "a_st": decision["a_tree"],
+                "a_exec": a_exec, "active": active, "progress": out["progress"], "payload_pose": payload_pose(env),
+                "C": rows.C, "c": rows.c, "row_mask": rows.row_mask,
+                "fixed_mask": np.asarray(rows.fixed_mask, dtype=bool), "human_action": out["human_action"]}
+        for name in Recording._ARRAYS:
+            self._steps[name].append(np.asarray(step[name])[live])
+        self._t = self._t + 1
+
+    def on_episode(self, k: int, metrics: dict) -> None:
+        self._metrics[k] = _jsonable(metrics)
+
+    def recording(self, params: dict, env_cfg, seed: int, shielded: bool) -> Recording:
+        if self._env is None:
+            raise ValueError("nothing was recorded")
+        env, episodes = self._env, self._env.K
+        arrays = {n: np.concatenate(v) for n, v in self._steps.items()}
+        arrays["leaf"] = arrays["leaf"].astype(np.int16)
+        arrays["nodes"] = arrays["nodes"].astype(np.int16)
+        order = np.lexsort((arrays["t"], arrays["episode"]))  # episode-major
+        arrays = {n: v[order] for n, v in arrays.items()}
+        meta = {"scenario": getattr(env_cfg, "scenario", None), "seed": seed, "shielded": shielded,
+                "episodes": episodes, "unfinished": episodes - len(self._metrics),
+                "episode_metrics": [self._metrics.get(k) for k in range(episodes)],
+                "feature_names": feature_names(env.obs_dim), "goal_xy": self._goal_xy.tolist(),
+                "walls": np.asarray(getattr(env, "walls_array", np.zeros((0, 5))), np.float64).tolist()}
+        return Recording(**arrays, params={k: np.asarray(v) for k, v in params.items()}, meta=meta)
+
+
 def record_episodes(params: dict, env_cfg, episodes: int, seed: int, shielded: bool = True,
                     max_steps: int | None = None) -> Recording:
-    """Run ``episodes`` deterministic deployment episodes and record every decision.
-
-    Deployment is the nominal hard-tree command (``team_forward_np``), the human
-    block substituted where ``fixed_mask`` is set, then the exact joint CBF-QP
-    (``solve_cbf_qp``) when ``shielded``, else the command clipped to the box.
-    One env per episode, batched; an env's steps after its first episode ends are
-    discarded (the env auto-resets). ``max_steps`` caps the loop (default: the
-    env config's ``max_steps`` + 1).
-    """
-    from common.env.batch_env import BatchEnv
-    from common.audit.params import feature_names
-    from common.qp import solve_cbf_qp
-    from common.tree import team_forward_np
-
-    if episodes < 1:
-        raise ValueError(f"episodes must be >= 1, got {episodes}")
-    env = BatchEnv(env_cfg, episodes, seed)
-    out = env.reset()
-    limit = max_steps if max_steps is not None else int(env.max_steps) + 1
-    goal_xy = np.asarray(env.goal_xy, np.float64).copy()  # goals of the first episodes (set at reset)
-    running = np.ones(episodes, dtype=bool)
-    t = np.zeros(episodes, dtype=np.int64)
-    rows: dict[str, list] = {n: [] for n in Recording._ARRAYS}
-    episode_metrics: list[dict | None] = [None] * episodes
-    for _ in range(limit):
-        if not running.any():
-            break
-        obs = out["obs"]
-        a_st, leaves, nodes, sides = team_forward_np(params, obs)
-        fixed = np.asarray(out["fixed_mask"], dtype=bool)
-        a_prop = np.where(fixed, out["human_action"], a_st)
-        if shielded:
-            res = solve_cbf_qp(a_prop, out["C"], out["c"], out["row_mask"], fixed)  # Eq. (qpshield)
-            a_exec, active = res.a_exec, res.active
-        else:
-            a_exec = np.clip(a_prop, -1.0, 1.0)
-            active = np.zeros(out["row_mask"].shape, dtype=bool)
-        step = {"episode": np.arange(episodes), "t": t, "obs": obs, "nodes": nodes, "sides": sides,
-                "leaf": leaves, "a_st": a_st, "a_exec": a_exec, "active": active,
-                "progress": out["progress"], "payload_pose": payload_pose(env),
-                "C": out["C"], "c": out["c"], "row_mask": out["row_mask"], "fixed_mask": fixed,
-                "human_action": out["human_action"]}
-        for name in Recording._ARRAYS:
-            rows[name].append(np.asarray(step[name])[running])
-        out = env.step(a_exec)
-        done = np.asarray(out["terminated"]) | np.asarray(out["truncated"])
-        metrics = out.get("episodes", [])  # one dict per env that ended this step, in env order
-        for k, e in enumerate(np.flatnonzero(done)):
-            if running[e] and k < len(metrics):
-                episode_metrics[e] = _jsonable(metrics[k])
-        running &= ~done
-        t = t + 1
-    arrays = {n: np.concatenate(v) for n, v in rows.items()}
-    arrays["leaf"] = arrays["leaf"].astype(np.int16)
-    arrays["nodes"] = arrays["nodes"].astype(np.int16)
-    order = np.lexsort((arrays["t"], arrays["episode"]))  # episode-major
-    arrays = {n: v[order] for n, v in arrays.items()}
-    meta = {"scenario": getattr(env_cfg, "scenario", None), "seed": seed, "shielded": shielded,
-            "episodes": episodes, "unfinished": int(running.sum()), "episode_metrics": episode_metrics,
-            "feature_names": feature_names(env.obs_dim), "goal_xy": goal_xy.tolist(),
-            "walls": np.asarray(getattr(env, "walls_array", np.zeros((0, 5))), np.float64).tolist()}
-    return Recording(**arrays, params={k: np.asarray(v) for k, v in params.items()}, meta=meta)
+    """Run ``episodes`` deterministic deployment episodes (the deployment loop,
+    ``common.evaluation.deployment``) and record every decision."""
+    rec = Recorder()
+    evaluate_policy(params, env_cfg, episodes, seed=seed, shielded=shielded, max_steps=max_steps, recorder=rec)
+    return rec.recording(params, env_cfg, seed, shielded)
 
 
 def payload_pose(env) -> np.ndarray:

@@ -1,26 +1,25 @@
 """K transport environments in one process (one MjModel, K MjData): the actors' env API.
 
-Task logic lives here (physics in physics.py): start/goal randomization, the shared
-reward, termination (success, drop) vs truncation (time limit), the scripted human
-slot, safety rows for the next action, and per-episode metrics. See
-docs/interfaces.md (common/env) for the dict returned by ``reset``/``step``.
-
-Reward (weights in ``RewardWeights``), per control step:
-``r = w_p * ds / max_step_xy - w_h * |heading err| - w_s * mean((strain/drop_strain)^2)
-- w_c * collision - w_d * drop - w_t + w_succ * success`` where ``ds`` is the route
-progress of the payload projection this step (clipped to [-2, 2] max steps).
+The batch bookkeeping lives here: start/goal randomization, the scripted human
+slot, auto-reset, safety rows for the next action and per-episode metrics.
+Physics is ``physics.py``; what a step means for the task (reward, success,
+drop, termination vs truncation) is ``task.py``. See docs/interfaces.md
+(common/env) for the dict returned by ``reset``/``step``.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from common.env.config import (CARRIER_RADIUS, CARRY_HEIGHT, FACING, GRASP_LOCAL, N_CARRIERS, PAIR_REST,
-                               PAYLOAD_POINTS_LOCAL, EnvConfig)
-from common.env.geometry import WallSet, from_frame, wrap
+from common.env.config import EnvConfig
+from common.env.layout import (CARRIER_RADIUS, CARRY_HEIGHT, FACING, GRASP_LOCAL, PAIR_REST,
+                               PAYLOAD_POINTS_LOCAL)
+from common.env.geometry import WallSet, from_frame
 from common.env.observations import OBS_DIM, STATE_DIM, global_state, observations, snapshot
 from common.env.physics import TransportPhysics
 from common.env.scenarios import SCENARIOS, Route
 from common.env.scripted import ScriptedHuman, scripted_actions
+from common.env.task import step_outcome
+from common.spec import JOINT_ACT_DIM, N_CARRIERS
 
 
 def safety_config(cfg: EnvConfig):
@@ -60,12 +59,12 @@ class BatchEnv:
         self.t = np.zeros(K, dtype=np.int64)
         self._acc = {k: np.zeros(K) for k in ("ret", "col", "tilt", "head", "height")}
         self._min_clear = np.full(K, np.inf)
-        self.fixed_mask = np.zeros((K, 3 * N_CARRIERS), dtype=bool)
+        self.fixed_mask = np.zeros((K, JOINT_ACT_DIM), dtype=bool)
         self.human = None
         if cfg.human_slot is not None:
             self.fixed_mask[:, 3 * cfg.human_slot:3 * cfg.human_slot + 3] = True
             self.human = ScriptedHuman(cfg.human_slot, cfg, K)
-        self.human_action = np.zeros((K, 3 * N_CARRIERS))
+        self.human_action = np.zeros((K, JOINT_ACT_DIM))
         self.snap = None
         self._started = False
 
@@ -139,10 +138,10 @@ class BatchEnv:
     def step(self, actions) -> dict:
         if not self._started:
             raise RuntimeError("call reset() before step()")
-        cfg, w = self.cfg, self.cfg.reward
+        cfg = self.cfg
         a = np.asarray(actions, dtype=np.float64)
-        if a.shape != (self.K, 3 * N_CARRIERS):
-            raise ValueError(f"actions must have shape {(self.K, 3 * N_CARRIERS)}, got {a.shape}")
+        if a.shape != (self.K, JOINT_ACT_DIM):
+            raise ValueError(f"actions must have shape {(self.K, JOINT_ACT_DIM)}, got {a.shape}")
         if not np.all(np.isfinite(a)):
             raise ValueError("actions contain NaN or Inf")
         a = np.clip(a, -1.0, 1.0)
@@ -154,20 +153,11 @@ class BatchEnv:
         self.s_prev = snap.s.copy()
         self.t += 1
 
-        drop = snap.strain.max(axis=1) > cfg.drop_strain
+        o = step_outcome(snap, s_old, self.t, self.max_steps, self.goal_xy, self.goal_yaw, cfg)
+        drop, success, terminated, truncated = o.drop, o.success, o.terminated, o.truncated
+        reward, collision, heading_err = o.reward, o.collision, o.heading_error
         for k in np.flatnonzero(drop):
             self.phys.release(k)
-        pos_err = np.linalg.norm(snap.pxy - self.goal_xy, axis=1)
-        yaw_err = np.abs(wrap(snap.pyaw - self.goal_yaw))
-        success = (pos_err < cfg.goal_pos_tol) & (yaw_err < cfg.goal_yaw_tol) & ~drop
-        terminated = drop | success
-        truncated = (self.t >= self.max_steps) & ~terminated
-        collision = snap.contact
-        heading_err = np.abs(wrap(snap.route_yaw - snap.pyaw))
-        ds = np.clip(snap.s - s_old, -2 * cfg.max_step_xy, 2 * cfg.max_step_xy)
-        reward = (w.progress * ds / cfg.max_step_xy - w.heading * heading_err
-                  - w.strain * np.mean((snap.strain / cfg.drop_strain) ** 2, axis=1)
-                  - w.collision * collision - w.drop * drop - w.time + w.success * success)
 
         acc = self._acc
         acc["ret"] += reward

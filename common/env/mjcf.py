@@ -16,9 +16,10 @@ from __future__ import annotations
 
 import math
 
-from common.env.config import (CARRIER_RADIUS, CARRY_HEIGHT, GRASP_LOCAL, N_CARRIERS,
-                               PAYLOAD_HALF, PAYLOAD_MASS, EnvConfig)
+from common.env.config import EnvConfig
+from common.env.layout import CARRIER_RADIUS, CARRY_HEIGHT, GRASP_LOCAL, PAYLOAD_HALF, PAYLOAD_MASS
 from common.env.scenarios import WALL_HEIGHT, ScenarioSpec
+from common.spec import N_CARRIERS
 
 
 def _f(*xs) -> str:

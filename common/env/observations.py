@@ -10,10 +10,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.env.config import (CARRY_HEIGHT, FACING, GRASP_LOCAL, N_CARRIERS, PAYLOAD_POINTS_LOCAL,
-                               CARRIER_RADIUS, EnvConfig)
+from common.env.config import EnvConfig
+from common.env.layout import CARRIER_RADIUS, CARRY_HEIGHT, FACING, GRASP_LOCAL, PAYLOAD_POINTS_LOCAL
 from common.env.geometry import WallSet, from_frame, to_frame, wrap
 from common.env.physics import TransportPhysics, quat_to_yaw_tilt
+from common.spec import N_CARRIERS
 
 OBS_FEATURE_NAMES: list[str] = [
     "vel_x", "vel_y", "vel_yaw",                    # own velocity / (max step per control_dt)

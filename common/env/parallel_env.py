@@ -6,7 +6,8 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from common.env.batch_env import BatchEnv
-from common.env.config import N_CARRIERS, EnvConfig
+from common.env.config import EnvConfig
+from common.spec import JOINT_ACT_DIM, N_CARRIERS
 
 
 class TransportParallelEnv(ParallelEnv):
@@ -63,7 +64,7 @@ class TransportParallelEnv(ParallelEnv):
     def step(self, actions):
         if not self.agents:
             raise RuntimeError("episode is over; call reset()")
-        a = np.zeros((1, 3 * N_CARRIERS))
+        a = np.zeros((1, JOINT_ACT_DIM))
         for i, agent in enumerate(self.possible_agents):
             if agent in actions:
                 a[0, 3 * i:3 * i + 3] = actions[agent]

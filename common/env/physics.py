@@ -12,9 +12,11 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from common.env.config import CARRY_HEIGHT, GRASP_LOCAL, N_CARRIERS, EnvConfig
+from common.env.config import EnvConfig
+from common.env.layout import CARRY_HEIGHT, GRASP_LOCAL
 from common.env.mjcf import build_mjcf
 from common.env.scenarios import ScenarioSpec
+from common.spec import N_CARRIERS
 
 
 def quat_to_yaw_tilt(quat):

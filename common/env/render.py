@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from common.env.config import CARRIER_RADIUS, GRASP_LOCAL, PAYLOAD_HALF, EnvConfig
+from common.env.config import EnvConfig
+from common.env.layout import CARRIER_RADIUS, GRASP_LOCAL, PAYLOAD_HALF
 from common.env.scenarios import SCENARIOS, Route
 
 

@@ -53,7 +53,7 @@ No row divides by ``h``: if a barrier is already negative (a violation), its
 row still asks for the recovery ``h⁺ >= (1 - α) h`` (i.e. at least an ``α``
 fraction of the violation is undone, predictor-level), which may be infeasible
 inside the action box; the QP's slack answer handles that. Rows are not
-normalized here (that is ``common.sail.normalize_rows``); rows whose
+normalized here (that is ``common.policy.sail.normalize_rows``); rows whose
 coefficients vanish are masked instead of emitted.
 
 Budget split for ``max_rows = M`` slots: the 6 formation rows always get their
@@ -71,9 +71,9 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-N_CARRIERS = 3
-ACT_DIM = 3 * N_CARRIERS
-PAIRS = ((0, 1), (0, 2), (1, 2))
+from common.env.layout import PAIRS
+from common.spec import JOINT_ACT_DIM, N_CARRIERS
+
 N_FORMATION_ROWS = 2 * len(PAIRS)
 KIND_CARRIER_WALL, KIND_PAYLOAD_WALL, KIND_FORMATION = 0, 1, 2
 _EPS = 1e-12
@@ -244,7 +244,7 @@ def predictor_matrices(geom: SafetyGeometry, cfg: SafetyConfig):
     (payload point displacement) and ``theta_B [K,9]`` (payload rotation δθ).
     """
     K = geom.num_envs
-    carrier_B = np.zeros((K, N_CARRIERS, 2, ACT_DIM))
+    carrier_B = np.zeros((K, N_CARRIERS, 2, JOINT_ACT_DIM))
     Rc = cfg.max_step_xy * _rot(geom.carrier_yaw)               # [K,3,2,2]
     for i in range(N_CARRIERS):
         carrier_B[:, i, :, 3 * i:3 * i + 2] = Rc[:, i]
@@ -268,8 +268,8 @@ def predict(geom: SafetyGeometry, a: np.ndarray, cfg: SafetyConfig) -> dict:
     (affine in ``a``), ``payload_theta [K]`` (δθ) and ``payload_translation [K,2]``.
     """
     a = np.asarray(a, dtype=np.float64)
-    if a.shape != (geom.num_envs, ACT_DIM) or not np.all(np.isfinite(a)):
-        raise ValueError(f"actions must be finite [K,{ACT_DIM}] with K={geom.num_envs}, got {a.shape}")
+    if a.shape != (geom.num_envs, JOINT_ACT_DIM) or not np.all(np.isfinite(a)):
+        raise ValueError(f"actions must be finite [K,{JOINT_ACT_DIM}] with K={geom.num_envs}, got {a.shape}")
     carrier_B, point_B, theta_B = predictor_matrices(geom, cfg)
     return {
         "carrier_xy": geom.carrier_xy + np.einsum("kiab,kb->kia", carrier_B, a),
@@ -329,7 +329,7 @@ def _wall_rows(points, B, walls, margin, per_entity, budget, cfg):
     """
     K, E = points.shape[:2]
     W = walls.shape[1]
-    out_C = np.zeros((K, budget, ACT_DIM))
+    out_C = np.zeros((K, budget, JOINT_ACT_DIM))
     out_c = np.zeros((K, budget))
     out_h = np.zeros((K, budget))
     out_mask = np.zeros((K, budget), dtype=bool)
@@ -370,7 +370,7 @@ def _formation_rows(geom, carrier_B, cfg):
     dD = np.einsum("kpa,kpab->kpb", unit, rel_B)                  # D⁺ ≈ D + dD a
     h_lo = dist - (geom.pair_rest - cfg.grasp_tol)
     h_hi = (geom.pair_rest + cfg.grasp_tol) - dist
-    C = np.stack([dD, -dD], 2).reshape(-1, N_FORMATION_ROWS, ACT_DIM)
+    C = np.stack([dD, -dD], 2).reshape(-1, N_FORMATION_ROWS, JOINT_ACT_DIM)
     h = np.stack([h_lo, h_hi], 2).reshape(-1, N_FORMATION_ROWS)
     mask = np.repeat(dist > _EPS, 2, axis=1) & (np.abs(C).max(-1) > _EPS)
     C = np.where(mask[..., None], C, 0.0)
@@ -400,7 +400,7 @@ def build_rows(geom: SafetyGeometry, walls: np.ndarray, cfg: SafetyConfig):
     walls = np.ascontiguousarray(walls[None] if walls.ndim == 2 else walls)
     M = int(cfg.max_rows)
     cb, pb = cfg.carrier_budget, cfg.payload_budget
-    C = np.zeros((K, M, ACT_DIM))
+    C = np.zeros((K, M, JOINT_ACT_DIM))
     c = np.zeros((K, M))
     mask = np.zeros((K, M), dtype=bool)
     h = np.zeros((K, M))

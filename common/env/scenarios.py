@@ -17,7 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.env.config import FOOTPRINT_SHIFT as S
+from common.env.layout import CARRIER_RADIUS, GRASP_LOCAL, PAYLOAD_HALF
+from common.env.layout import FOOTPRINT_SHIFT as S
 
 WALL_T = 0.2        # wall thickness
 WALL_HEIGHT = 1.6   # walls are taller than the payload
@@ -261,8 +262,6 @@ class Route:
 
 def formation_footprint(xy, yaw, n_arc: int = 8):
     """World points of the formation outline (board boundary and carrier discs) at poses [K]."""
-    from common.env.config import CARRIER_RADIUS, GRASP_LOCAL, PAYLOAD_HALF
-
     hx, hy = PAYLOAD_HALF[0], PAYLOAD_HALF[1]
     t = np.linspace(-1, 1, 9)
     board = np.concatenate([

@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from common.env.config import FACING, GRASP_LOCAL, N_CARRIERS, EnvConfig
+from common.env.config import EnvConfig
+from common.env.layout import FACING, GRASP_LOCAL
 from common.env.geometry import from_frame, to_frame, wrap
 from common.env.observations import Snapshot
+from common.spec import JOINT_ACT_DIM, N_CARRIERS
 
 
 def scripted_actions(snap: Snapshot, cfg: EnvConfig, speed: float = 0.85, max_turn: float = 0.05):
@@ -33,7 +35,7 @@ def scripted_actions(snap: Snapshot, cfg: EnvConfig, speed: float = 0.85, max_tu
     n = np.linalg.norm(a_xy, axis=-1, keepdims=True)
     a_xy = a_xy / np.maximum(n, 1.0)
     a_yaw = np.clip(wrap(new_yaw[:, None] + FACING - snap.cyaw) / cfg.max_step_yaw, -1.0, 1.0)
-    return np.concatenate([a_xy, a_yaw[..., None]], axis=-1).reshape(K, 3 * N_CARRIERS)
+    return np.concatenate([a_xy, a_yaw[..., None]], axis=-1).reshape(K, JOINT_ACT_DIM)
 
 
 class ScriptedHuman:

@@ -1,7 +1,7 @@
 """Actor service: K environments, newest parameters, one batched shield query
 per step, trajectory chunks every ``chunk_len`` steps.
 
-Per step (Eq. action_chain): ``common.rollout.propose`` gives a_ST, the
+Per step (Eq. action_chain): ``common.policy.rollout.propose`` gives a_ST, the
 proposal center a_bar (SAIL map with the learner's kappa in SAIL methods,
 identity otherwise) and a sampled a_prop with its behavior log-prob; shielded
 methods send all K rows in ONE query and execute the shield's a_exec,
@@ -18,12 +18,14 @@ from collections import deque
 
 import numpy as np
 
-from common import keys, wire
+from common import keys
+from common.algos.registry import method_spec
+from common.env.batch_env import BatchEnv
 from common.metrics_prom import Window
+from common.policy.rollout import propose as default_propose
+from common.safety_rows import SafetyRows
 from services.base import RateMeter, Service
 
-UNSHIELDED_METHODS = ("happo",)   # Sec. IV: HAPPO is the unshielded reference
-SAIL_METHODS = ("sail_cbf", "sage")
 EXIT_UNHEALTHY = 3
 
 # per-step fields of a chunk (docs/wire.md, traj), in the order they are stacked
@@ -45,9 +47,9 @@ class ActorService(Service):
         super().__init__(cfg, bus, member_id, registry, stop)
         self.actor_id = int(member_id)
         self.env = env
-        self._propose = propose
-        self.shielded = cfg.method not in UNSHIELDED_METHODS
-        self.uses_sail = cfg.method in SAIL_METHODS
+        self._propose = propose if propose is not None else default_propose
+        spec = method_spec(cfg.method)
+        self.shielded, self.uses_sail = spec.shielded, spec.uses_sail
         self.rng = np.random.default_rng([cfg.seed, 1000 + self.actor_id])
         # parameters: written by the subscriber thread, adopted by the loop
         self._lock = threading.Lock()
@@ -88,11 +90,10 @@ class ActorService(Service):
                           "K": float(self.cfg.envs_per_actor)}}
 
     # ------------------------------------------------------------- shield
-    def filter_actions(self, a_prop, C, c, row_mask, fixed_mask) -> np.ndarray | None:
+    def filter_actions(self, a_prop: np.ndarray, rows: SafetyRows) -> np.ndarray | None:
         """Exact joint CBF-QP via the shield service; retries until answered.
         Returns None only if a stop was requested (then nothing is executed)."""
-        payload = self.encode("shield_req", {"a_prop": a_prop, "C": C, "c": c,
-                                              "row_mask": row_mask, "fixed_mask": fixed_mask})
+        payload = self.encode("shield_req", {"a_prop": a_prop, **rows.as_dict()})
         key = keys.shield(self.cfg.run_id)
         acfg = self.cfg.actor
         first_fail = None
@@ -136,15 +137,9 @@ class ActorService(Service):
 
     # ------------------------------------------------------------- loop
     def _make_env(self):
-        from common.env.batch_env import BatchEnv
-
         return BatchEnv(self.cfg.env_config(), self.cfg.envs_per_actor, seed=self.cfg.seed * 1000 + self.actor_id)
 
     def run(self) -> int:
-        if self._propose is None:
-            from common.rollout import propose
-
-            self._propose = propose
         env = self.env if self.env is not None else self._make_env()
         self.bus.subscribe(keys.params(self.cfg.run_id), self._on_params)
         self.listen_control()
@@ -190,12 +185,12 @@ class ActorService(Service):
                 versions, episodes = [], []
             chunk_incarnation = p["incarnation"]
             kappa = float(p["settings"].get("kappa", 0.0)) if self.uses_sail else 0.0
-            prop = self._propose(p["params"], out["obs"], out["C"], out["c"], out["row_mask"],
-                                 out["fixed_mask"], out["human_action"], kappa, self.rng, "train",
-                                 use_sail=self.uses_sail)
+            rows = SafetyRows.of(out)
+            prop = self._propose(p["params"], out["obs"], rows, out["human_action"], self.rng, "train",
+                                 kappa=kappa, use_sail=self.uses_sail)
             a_prop = np.asarray(prop["a_prop"], dtype=np.float64)
             if self.shielded:
-                a_exec = self.filter_actions(a_prop, out["C"], out["c"], out["row_mask"], out["fixed_mask"])
+                a_exec = self.filter_actions(a_prop, rows)
                 if a_exec is None:  # stopping: nothing executed
                     return
             else:

@@ -22,9 +22,14 @@ import numpy as np
 import torch
 
 from common import keys
+from common.algos.methods import Method, make_method
 from common.checkpoint import load_latest, save_checkpoint
+from common.env.batch_env import BatchEnv
+from common.evaluation.deployment import evaluate_policy
+from common.rundir import RunDir, read_jsonl
 from common.wire import traj_batch
 from services.base import RateMeter, Service
+from services.config import DEPLOY_PROBE_SEED
 
 
 class MetricsLog:
@@ -32,13 +37,10 @@ class MetricsLog:
     rewritten when a new column appears, so every row has every column)."""
 
     def __init__(self, run_dir: str | Path):
-        self.dir = Path(run_dir)
-        self.dir.mkdir(parents=True, exist_ok=True)
-        self.jsonl = self.dir / "metrics.jsonl"
-        self.csv = self.dir / "metrics.csv"
-        self.rows: list[dict] = []
-        if self.jsonl.exists():  # resume: keep the earlier rows in the CSV too
-            self.rows = [json.loads(line) for line in self.jsonl.read_text().splitlines() if line.strip()]
+        run = RunDir(run_dir)
+        run.root.mkdir(parents=True, exist_ok=True)
+        self.jsonl, self.csv = run.metrics_jsonl, run.metrics_csv
+        self.rows: list[dict] = read_jsonl(self.jsonl)  # resume: keep the earlier rows in the CSV too
         self.columns: list[str] = []
         for r in self.rows:
             self.columns += [k for k in r if k not in self.columns]
@@ -60,10 +62,8 @@ class MetricsLog:
                 csv.DictWriter(f, fieldnames=self.columns).writerow(row)
 
 
-def _default_method(cfg):
-    from common.algos.methods import make_method
-    from common.env.batch_env import BatchEnv
-
+def build_method(cfg) -> Method:
+    """The run's learning method, sized by the run's environment."""
     probe = BatchEnv(cfg.env_config(), 1, seed=cfg.seed)  # only for obs/state dims
     return make_method(cfg.method, cfg.algo_config(), probe.obs_dim, probe.state_dim)
 
@@ -101,7 +101,7 @@ class LearnerService(Service):
         self.steps_rate = RateMeter()
         self.recent_success: deque[float] = deque(maxlen=100)
         self.run_dir = Path(cfg.run_dir)
-        self.ckpt_dir = self.run_dir / "checkpoints"
+        self.ckpt_dir = RunDir(cfg.run_dir).checkpoints
         self.resumed_from: int | None = None
         self._t_start = time.monotonic()
         self._t_params = -1e9
@@ -176,9 +176,6 @@ class LearnerService(Service):
     def deploy_probe(self) -> dict:
         """What deployment would do now: hard trees' deterministic actions through the
         exact QP (unshielded for HAPPO) on held-out seeded episodes (Sec. III-D)."""
-        from common.evaluation import evaluate_policy
-        from services.config import DEPLOY_PROBE_SEED
-
         t0 = time.perf_counter()
         e = evaluate_policy(self.method.policy_params(), self.cfg.env_config(), self.cfg.deploy_probe_episodes,
                             seed=DEPLOY_PROBE_SEED + self.cfg.seed, shielded=self.method.shielded,
@@ -272,11 +269,9 @@ class LearnerService(Service):
     # ------------------------------------------------------------- loop
     def run(self) -> int:
         if self.cfg.torch_threads:
-            import torch  # process-wide setting: in-process the actor threads share it
-
-            torch.set_num_threads(self.cfg.torch_threads)
+            torch.set_num_threads(self.cfg.torch_threads)  # process-wide: in-process the actor threads share it
         if self.method is None:
-            self.method = _default_method(self.cfg)
+            self.method = build_method(self.cfg)
         self.log_rows = MetricsLog(self.run_dir)
         self.try_resume()
         self.bus.subscribe(keys.traj_all(self.cfg.run_id), self._on_traj)

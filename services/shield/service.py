@@ -13,17 +13,18 @@ import time
 
 import numpy as np
 
-from common import keys, wire
+from common import keys
 from common.metrics_prom import Window
+from common.safety_rows import SafetyRows
+from common.shield.qp import shield_actions
+from common.spec import JOINT_ACT_DIM
 from common.transport import Request
 from services.base import RateMeter, Service
 
 
 def _default_solver(backend: str):
-    from common.qp import solve_cbf_qp
-
-    def solve(a_prop, C, c, row_mask, fixed_mask):
-        return solve_cbf_qp(a_prop, C, c, row_mask, fixed_mask, backend=backend)
+    def solve(a_prop, rows: SafetyRows):
+        return shield_actions(a_prop, rows, backend=backend)
 
     return solve
 
@@ -51,8 +52,8 @@ class ShieldService(Service):
         """One tiny solve before serving, so a JIT-compiled backend does not
         time out the first real query (numba compiles on first call)."""
         try:
-            self.solve(np.zeros((1, wire.ACT_DIM)), np.zeros((1, 1, wire.ACT_DIM)), np.zeros((1, 1)),
-                       np.ones((1, 1), bool), np.zeros((1, wire.ACT_DIM), bool))
+            self.solve(np.zeros((1, JOINT_ACT_DIM)), SafetyRows(np.zeros((1, 1, JOINT_ACT_DIM)), np.zeros((1, 1)),
+                                                                np.ones((1, 1), bool), np.zeros((1, JOINT_ACT_DIM), bool)))
         except Exception as exc:  # noqa: BLE001 - a broken solver is reported per query later
             self.log.warning("warm-up solve failed: %s", exc)
 
@@ -121,13 +122,14 @@ class ShieldService(Service):
                 req.finish()  # idempotent; no query is ever left open
 
     def _solve_group(self, items: list[tuple[Request, dict]]) -> None:
-        cat = {k: np.concatenate([b[k] for _, b in items]) for k in ("a_prop", "C", "c", "row_mask", "fixed_mask")}
-        B = cat["a_prop"].shape[0]
+        a_prop = np.concatenate([b["a_prop"] for _, b in items])
+        rows = SafetyRows.concat([SafetyRows.of(b) for _, b in items])
+        B = a_prop.shape[0]
         t0 = time.perf_counter()
         try:
-            res = self.solve(cat["a_prop"], cat["C"], cat["c"], cat["row_mask"], cat["fixed_mask"])
+            res = self.solve(a_prop, rows)
             a_exec = np.asarray(res.a_exec, dtype=np.float64)
-            if a_exec.shape != cat["a_prop"].shape or not np.isfinite(a_exec).all():
+            if a_exec.shape != a_prop.shape or not np.isfinite(a_exec).all():
                 raise ValueError(f"solver returned a_exec {a_exec.shape}, finite={np.isfinite(a_exec).all()}")
         except Exception as exc:  # noqa: BLE001 - reported to every asker, loop goes on
             reason = "invalid_input" if isinstance(exc, ValueError) else "solver_error"

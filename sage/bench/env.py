@@ -1,19 +1,15 @@
-"""`sage env render`, `sage bench env`, `sage bench scripted`."""
+"""`sage bench env` (env control steps/s vs the raw ``mujoco.rollout`` physics
+bound of the same model, measured in the same run) and `sage bench scripted`
+(the scripted reference controller's success rate per scenario)."""
 from __future__ import annotations
 
 import json
 import time
 
-
-def _render(args):
-    from common.env.render import render
-    from common.env.scenarios import SCENARIOS
-
-    names = list(SCENARIOS) if args.all else [args.scenario]
-    records = render(args.out, names, seed=args.seed)
-    for name, rec in records.items():
-        print(f"{name}: scripted {'success' if rec['success'] else 'failure'} in {rec['steps']} steps")
-    print(f"wrote {args.out}")
+from common.env.batch_env import BatchEnv
+from common.env.config import EnvConfig
+from common.env.metrics import aggregate
+from common.env.scenarios import SCENARIOS
 
 
 def bench_env(scenario: str = "maze", num_envs: int = 16, steps: int = 100, seed: int = 0,
@@ -36,8 +32,6 @@ def bench_env(scenario: str = "maze", num_envs: int = 16, steps: int = 100, seed
     import mujoco.rollout
     import numpy as np
 
-    from common.env.batch_env import BatchEnv
-    from common.env.config import EnvConfig
 
     if num_envs < 1 or steps < 1 or repeats < 1:
         raise ValueError("num_envs, steps and repeats must be >= 1")
@@ -80,11 +74,6 @@ def bench_env(scenario: str = "maze", num_envs: int = 16, steps: int = 100, seed
 
 def bench_scripted(episodes: int = 20, scenarios=None, seed: int = 0, num_envs: int = 10) -> dict:
     """Success rate of the scripted reference controller per scenario (first `episodes` episodes)."""
-    from common.env.batch_env import BatchEnv
-    from common.env.config import EnvConfig
-    from common.env.metrics import aggregate
-    from common.env.scenarios import SCENARIOS
-
     out = {}
     for name in scenarios or list(SCENARIOS):
         env = BatchEnv(EnvConfig(name), num_envs=min(num_envs, episodes), seed=seed)
@@ -111,18 +100,7 @@ def _bench_scripted(args):
     print(json.dumps(res, indent=None if args.json else 2))
 
 
-def register(commands, bench):
-    from common.env.scenarios import SCENARIOS
-
-    env_p = commands.add_parser("env", help="transport environment tools (render scenarios)")
-    sub = env_p.add_subparsers(dest="env_command", metavar="ENV_COMMAND")
-    r = sub.add_parser("render", help="top-down scenario figure with a scripted rollout overlaid")
-    r.add_argument("--scenario", choices=sorted(SCENARIOS), default="maze")
-    r.add_argument("--all", action="store_true", help="3x3 grid of all nine scenarios")
-    r.add_argument("--out", default="scenario.png")
-    r.add_argument("--seed", type=int, default=0)
-    r.set_defaults(func=_render)
-
+def register(commands, bench) -> None:
     b = bench.add_parser("env", help="env control steps/s vs raw mujoco.rollout physics bound")
     b.add_argument("--json", action="store_true")
     b.add_argument("--scenario", choices=sorted(SCENARIOS), default="maze")

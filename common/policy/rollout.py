@@ -2,9 +2,9 @@
 
 One control step for K environments, Eq. (action_chain) up to the shield:
 
-    a_ST = team hard-tree forward          (common/tree.py, Eq. hard_tree_policy)
-    a_bar = Pi_kappa(x, a_ST)              (common/sail.py, Eq. sail_projection; identity without SAIL)
-    a_prop ~ pi(. | a_bar)                 (common/proposal.py; "train" mode)
+    a_ST = team hard-tree forward          (common/policy/tree.py, Eq. hard_tree_policy)
+    a_bar = Pi_kappa(x, a_ST)              (common/policy/sail.py, Eq. sail_projection; identity without SAIL)
+    a_prop ~ pi(. | a_bar)                 (common/policy/proposal.py; "train" mode)
 
 The exact CBF-QP (a_prop -> a_exec) runs in the shield service, not here.
 
@@ -22,9 +22,10 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from common.proposal import ProposalConfig, proposal_sample_np
-from common.sail import SailConfig, sail_project_np
-from common.tree import team_forward_np, team_log_std
+from common.safety_rows import SafetyRows
+from common.policy.proposal import ProposalConfig, proposal_sample_np
+from common.policy.sail import SailConfig, sail_project_np
+from common.policy.tree import team_forward_np, team_log_std
 
 MODES = ("train", "deploy")
 
@@ -41,46 +42,47 @@ def carrier_fixed_mask(fixed_mask: np.ndarray, n_agents: int, act_dim: int) -> n
 def propose(
     params: Mapping[str, np.ndarray],
     obs: np.ndarray,
-    C: np.ndarray,
-    c: np.ndarray,
-    row_mask: np.ndarray,
-    fixed_mask: np.ndarray,
+    rows: SafetyRows,
     human_action: np.ndarray,
-    kappa: float,
-    rng: np.random.Generator,
-    mode: str,
+    rng: np.random.Generator | None,
+    mode: str = "train",
+    *,
+    kappa: float = 0.0,
     use_sail: bool = True,
     sail_config: SailConfig = SailConfig(),
     proposal_config: ProposalConfig = ProposalConfig(),
 ) -> dict[str, np.ndarray]:
     """One actor step for B envs.
 
-    obs [B,N,obs_dim]; C [B,M,d], c [B,M], row_mask [B,M] bool; fixed_mask [B,d] or [d] bool;
-    human_action [B,d] (read only where fixed); kappa >= 0 (scalar or [B]).
-    Returns a_st, a_bar, a_prop [B,d] float64; logp [B,N] float64; leaf [B,N]; nodes, sides [B,N,D].
+    obs [B,N,obs_dim]; ``rows`` the step's SafetyRows (fixed_mask [B,d] or [d]);
+    human_action [B,d] (read only where fixed); kappa >= 0 (scalar or [B]): the
+    SAIL penalty the learner broadcasts.
+    Returns a_st, a_bar, a_prop [B,d] float64; logp [B,N] float64; leaf [B,N]; nodes, sides [B,N,D];
+    a_tree [B,d], the trees' own output before the human block replaces theirs (decision traces).
     """
     if mode not in MODES:
         raise ValueError(f"rollout: mode must be one of {MODES}, got {mode!r}")
-    a_st, leaf, nodes, sides = team_forward_np(params, obs)
-    B, d = a_st.shape
+    a_tree, leaf, nodes, sides = team_forward_np(params, obs)
+    B, d = a_tree.shape
     n_agents = leaf.shape[1]
-    fixed = np.broadcast_to(np.asarray(fixed_mask, dtype=bool), (B, d))
+    fixed = np.broadcast_to(np.asarray(rows.fixed_mask, dtype=bool), (B, d))
     human = np.broadcast_to(np.asarray(human_action, dtype=np.float64), (B, d))
     if np.any(fixed) and not np.all(np.isfinite(human[fixed])):
         raise ValueError("rollout: human_action is NaN/Inf in a fixed block")
     human_carrier = carrier_fixed_mask(fixed, n_agents, d // n_agents)
-    a_st = np.where(fixed, human, a_st)
+    a_st = np.where(fixed, human, a_tree)
 
     if mode == "deploy":
         return dict(a_st=a_st, a_bar=a_st.copy(), a_prop=a_st.copy(), logp=np.zeros((B, n_agents)),
-                    leaf=leaf, nodes=nodes, sides=sides)
+                    leaf=leaf, nodes=nodes, sides=sides, a_tree=a_tree)
 
     if use_sail:
-        a_bar = sail_project_np(a_st, C, c, np.asarray(row_mask, dtype=bool), kappa,
+        a_bar = sail_project_np(a_st, rows.C, rows.c, np.asarray(rows.row_mask, dtype=bool), kappa,
                                 fixed_mask=fixed, fixed_action=human, config=sail_config)
     else:
         a_bar = a_st.copy()
     a_prop, logp = proposal_sample_np(a_bar, team_log_std(params), rng, proposal_config)
     a_prop = np.where(fixed, human, a_prop)
     logp = np.where(human_carrier, 0.0, logp)
-    return dict(a_st=a_st, a_bar=a_bar, a_prop=a_prop, logp=logp, leaf=leaf, nodes=nodes, sides=sides)
+    return dict(a_st=a_st, a_bar=a_bar, a_prop=a_prop, logp=logp, leaf=leaf, nodes=nodes, sides=sides,
+                a_tree=a_tree)

@@ -3,7 +3,7 @@
 Deployment keeps only the hard trees' deterministic actions and the exact
 joint CBF-QP (Sec. III-D: SAIL, exploration, the critic and TALO are
 training-only), so this loads the tree parameters of a run's newest
-checkpoint and runs ``common.evaluation.evaluate_policy`` on seeded episodes
+checkpoint and runs ``common.evaluation.deployment.evaluate_policy`` on seeded episodes
 disjoint from training. Output keys follow the report's ``EVAL_KEYS``.
 """
 from __future__ import annotations
@@ -11,7 +11,11 @@ from __future__ import annotations
 import dataclasses
 import json
 import sys
-from pathlib import Path
+
+from common.audit.recording import Recorder
+from common.evaluation.deployment import evaluate_policy
+from sage.runs import load_run
+from services.config import FINAL_EVAL_SEED
 
 
 def eval_record(e: dict) -> dict:
@@ -34,27 +38,7 @@ def eval_record(e: dict) -> dict:
     return out
 
 
-def load_run(path: str | Path):
-    """(TrainConfig, flat tree params, checkpoint version) from a run dir or checkpoint file."""
-    from common.checkpoint import load_checkpoint, load_latest
-    from services.cli import _params_from_checkpoint
-    from services.config import TrainConfig
-
-    p = Path(path)
-    if p.is_dir():
-        cfg = TrainConfig.load(p / "config.json")
-        ck = load_latest(p / "checkpoints")
-        if ck is None:
-            raise FileNotFoundError(f"{p}: no loadable checkpoint under checkpoints/")
-    else:
-        ck = load_checkpoint(p)
-        cfg = TrainConfig.from_dict(json.loads(ck["config"]))  # the learner stores its resolved config
-    return cfg, _params_from_checkpoint(cfg, ck), int(ck["version"])
-
-
 def run_eval_command(args) -> int:
-    from common.evaluation import evaluate_policy
-
     cfg, params, version = load_run(args.checkpoint)
     if args.scenario:
         cfg.scenario = args.scenario
@@ -65,14 +49,13 @@ def run_eval_command(args) -> int:
         # other two slots, the QP holds the human's block fixed (Eq. qpshield)
         env_cfg = dataclasses.replace(
             env_cfg, human_slot=None if args.human_slot == "none" else int(args.human_slot))
-    raw = evaluate_policy(params, env_cfg, args.episodes, seed=args.seed, shielded=shielded)
+    recorder = Recorder() if args.record else None   # records the very episodes it scores
+    raw = evaluate_policy(params, env_cfg, args.episodes, seed=args.seed, shielded=shielded, recorder=recorder)
     rec = eval_record(raw)
     rec.update(method=cfg.method, scenario=cfg.scenario, version=version, human_slot=env_cfg.human_slot)
-    if args.record:
-        from common.audit.recording import record_episodes, save
-
-        recording = record_episodes(params, env_cfg, args.episodes, seed=args.seed, shielded=shielded)
-        rec["recording"] = str(save(recording, args.record))
+    if recorder is not None:
+        recording = recorder.recording(params, env_cfg, args.seed, shielded)
+        rec["recording"] = str(recording.save(args.record))
     if args.json:
         print(json.dumps(rec, indent=2, default=float))
     else:
@@ -86,3 +69,19 @@ def run_eval_command(args) -> int:
               f"proposal viol. {f('proposal_violation', 100)}%  correction {f('correction')}", file=sys.stderr)
         print(json.dumps(rec, default=float))
     return 0
+
+
+def register(commands, bench) -> None:
+    p = commands.add_parser("eval", help="deployment evaluation: hard trees + exact QP only")
+    p.add_argument("checkpoint", help="run directory or checkpoint file")
+    p.add_argument("--episodes", type=int, default=20)
+    p.add_argument("--seed", type=int, default=FINAL_EVAL_SEED, help="evaluation seeds start here (disjoint from training)")
+    p.add_argument("--scenario", default=None, help="override the run's scenario")
+    p.add_argument("--unshielded", action="store_true", help="execute the trees' actions without the QP")
+    p.add_argument("--human-slot", default=None, choices=["0", "1", "2", "none"],
+                   help="deploy beside the scripted human partner in this carrier slot (its block is "
+                        "exogenous: noisy, delayed, never corrected by the QP); 'none' = three "
+                        "robots; default: the run's own setting")
+    p.add_argument("--record", default=None, help="also record decision traces to this file")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=run_eval_command)

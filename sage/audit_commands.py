@@ -8,7 +8,15 @@ from pathlib import Path
 
 import numpy as np
 
+from common.audit import tree_view
+from common.audit.bundle import export_bundle
 from common.audit.config import AuditConfig
+from common.audit.figures import colortrace, draw_trace
+from common.audit.leaf_stats import audit_markdown, leaf_audit
+from common.audit.params import feature_names, load_params_file, split_carriers
+from common.audit.recording import Recording
+from common.checkpoint import list_checkpoints
+from common.rundir import RunDir
 
 _DEFAULTS = AuditConfig()
 
@@ -49,12 +57,11 @@ def register(commands, bench) -> None:
 
 def load_policy(path: str) -> dict[str, np.ndarray]:
     """Flat params from a checkpoint file, a run directory holding one, or .npz/.json."""
-    from common.audit.params import load_params_file
-
     p = Path(path)
     if p.is_dir():
-        candidates = sorted([*p.glob("*.pt"), *p.glob("checkpoints/*.pt"), *p.glob("*.npz")],
-                            key=lambda q: q.stat().st_mtime)
+        # a run directory: its newest checkpoint (by version); else a folder of params files
+        candidates = list_checkpoints(RunDir(p).checkpoints) or sorted(
+            [*p.glob("*.pt"), *p.glob("*.npz")], key=lambda q: q.stat().st_mtime)
         if not candidates:
             raise FileNotFoundError(f"{p}: no checkpoint (*.pt) or params (*.npz) inside")
         p = candidates[-1]  # newest
@@ -75,9 +82,6 @@ def leaf_visits(log_path: str, carrier: int, n_leaves: int) -> np.ndarray:
 
 
 def _tree(args: argparse.Namespace) -> int:
-    from common.audit.params import feature_names, split_carriers
-    from common.audit import tree_view
-
     params = load_policy(args.policy)
     trees = split_carriers(params)
     if not 0 <= args.carrier < len(trees):
@@ -104,9 +108,6 @@ def _tree(args: argparse.Namespace) -> int:
 
 
 def _trace(args: argparse.Namespace) -> int:
-    from common.audit.figures import draw_trace
-    from common.audit.recording import Recording
-
     rec = Recording.load(args.recording)
     steps = None
     if args.steps:
@@ -121,9 +122,6 @@ def _trace(args: argparse.Namespace) -> int:
 
 def run_audit(recording, out_dir: str | Path, cfg: AuditConfig = AuditConfig(), episode: int | None = None) -> dict:
     """Table leaf_interpretability (JSON + Markdown) and Fig. colortrace for one recording."""
-    from common.audit.figures import colortrace
-    from common.audit.leaf_stats import audit_markdown, leaf_audit
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     result = leaf_audit(recording.leaf, recording.progress, cfg)
@@ -135,9 +133,6 @@ def run_audit(recording, out_dir: str | Path, cfg: AuditConfig = AuditConfig(), 
 
 
 def _audit(args: argparse.Namespace) -> int:
-    from common.audit.leaf_stats import audit_markdown
-    from common.audit.recording import Recording
-
     cfg = AuditConfig(progress_bins=args.bins, shuffles=args.shuffles, top_tuples=args.top_tuples, seed=args.seed)
     result = run_audit(Recording.load(args.recording), args.out, cfg, args.episode)
     print(audit_markdown(result))
@@ -146,8 +141,6 @@ def _audit(args: argparse.Namespace) -> int:
 
 
 def _export_bundle(args: argparse.Namespace) -> int:
-    from common.audit.bundle import export_bundle
-
     out = export_bundle(load_policy(args.policy), args.out, meta={"source": str(args.policy)})
     print(f"wrote bundle to {out}: {', '.join(sorted(p.name for p in out.iterdir()))}")
     return 0

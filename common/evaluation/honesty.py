@@ -5,7 +5,7 @@ Eq. (joint_safety_rows) is a conservative bound on the one-step condition
 ``h(x⁺) >= (1 - α) h(x)`` *for the linear predictor* of common/env/safety.py.
 This module measures the gap to the real MuJoCo step. It rolls K environments
 with random actions, projects every action onto the rows with the exact joint
-CBF-QP (Eq. qpshield, ``common.qp.solve_cbf_qp``), steps, and evaluates the
+CBF-QP (Eq. qpshield, ``common.shield.qp.solve_cbf_qp``), steps, and evaluates the
 *true* barriers (exact distances) at the true next state.
 
 Random actions: each env drives its formation along a random world direction
@@ -108,7 +108,7 @@ class _MujocoWorld:
         self.out = self.env.reset()
 
     def _read(self) -> safety.SafetyGeometry:
-        from common.env.config import GRASP_LOCAL, PAIR_REST, PAYLOAD_POINTS_LOCAL
+        from common.env.layout import GRASP_LOCAL, PAIR_REST, PAYLOAD_POINTS_LOCAL
         from common.env.physics import quat_to_yaw_tilt
 
         phys = self.env.phys
@@ -135,7 +135,8 @@ class _PredictorWorld:
 
     def __init__(self, scenario: str, num_envs: int, seed: int):
         from common.env.batch_env import safety_config
-        from common.env.config import FACING, GRASP_LOCAL, PAIR_REST, PAYLOAD_POINTS_LOCAL, EnvConfig
+        from common.env.config import EnvConfig
+        from common.env.layout import FACING, GRASP_LOCAL, PAIR_REST, PAYLOAD_POINTS_LOCAL
         from common.env.scenarios import SCENARIOS, Route
 
         spec = SCENARIOS[scenario]
@@ -180,7 +181,7 @@ def measure_honesty(scenario: str, n_steps: int, seed: int, num_envs: int = 8, w
                     drift_gain: float = 0.8, noise: float = 0.5, drift_steps: int = 20,
                     tol: float = 1e-9, backend: str = "default") -> dict:
     """Roll ``num_envs`` envs for ``n_steps`` shielded random steps; see the module docstring."""
-    from common.qp import STATUS_OPTIMAL, solve_cbf_qp
+    from common.shield.qp import STATUS_OPTIMAL, solve_cbf_qp
 
     if world not in ("mujoco", "predictor"):
         raise ValueError(f"world must be 'mujoco' or 'predictor', got {world!r}")

@@ -11,6 +11,7 @@ sample).
 """
 from __future__ import annotations
 
+import argparse
 import json
 import math
 from dataclasses import dataclass
@@ -19,30 +20,10 @@ from typing import Iterable
 
 import numpy as np
 
-METHODS = ["happo", "happo_cbf", "talo_cbf", "sail_cbf", "sage"]
-METHOD_TITLES = {
-    "happo": "HAPPO",
-    "happo_cbf": "HAPPO+CBF",
-    "talo_cbf": "TALO+CBF",
-    "sail_cbf": "SAIL+CBF",
-    "sage": "SAGE+CBF",
-}
-FAMILIES = {
-    "LCP": ["narrow_gate", "needle_gate", "tilt_gate"],
-    "STR": ["double_gate", "chicane", "s_corridor"],
-    "CCN": ["l_corridor", "u_corridor", "maze"],
-}
-SCENARIO_TITLES = {
-    "narrow_gate": "Narrow Gate",
-    "needle_gate": "Needle Gate",
-    "tilt_gate": "Tilt Gate",
-    "double_gate": "Double Gate",
-    "chicane": "Chicane",
-    "s_corridor": "S-Shaped Corridor",
-    "l_corridor": "L-Corridor",
-    "u_corridor": "U-Shaped Corridor",
-    "maze": "Maze",
-}
+from common.algos.registry import METHOD_SPECS, METHODS
+from common.env.scenarios import FAMILIES, SCENARIO_TITLES
+
+METHOD_TITLES = {name: spec.title for name, spec in METHOD_SPECS.items()}
 # Keys every result's "eval" block carries (deployment evaluation).
 EVAL_KEYS = [
     "success_rate", "return_mean", "col_per_1k", "drop_rate",
@@ -56,7 +37,6 @@ CURVE_KEYS = {
     "proposal_violation": "proposal_violation_rate", "correction": "correction_mean",
     "deploy_success_rate": "deploy_sr",   # the learner's periodic deterministic deployment probe
 }
-SHIELDED = {"happo": False, "happo_cbf": True, "talo_cbf": True, "sail_cbf": True, "sage": True}
 
 
 @dataclass
@@ -262,9 +242,9 @@ def table_markdown(summary: dict) -> str:
 
         def pm(key, scale=1.0, digits=1):
             return f"{_fmt(o[key]['mean'], digits, scale)} ± {_fmt(o[key]['std'], digits, scale)}"
-        viol = pm("proposal_violation", 100) if SHIELDED[m] else "N/A"
-        wall_viol = pm("proposal_violation_any_wall", 100) if SHIELDED[m] else "N/A"
-        corr = pm("correction", 1, 3) if SHIELDED[m] else "N/A"
+        viol = pm("proposal_violation", 100) if METHOD_SPECS[m].shielded else "N/A"
+        wall_viol = pm("proposal_violation_any_wall", 100) if METHOD_SPECS[m].shielded else "N/A"
+        corr = pm("correction", 1, 3) if METHOD_SPECS[m].shielded else "N/A"
         lines.append(f"| {METHOD_TITLES[m]} | {o['runs']} | {pm('success_rate', 100)} | {pm('return_mean', 1, 2)} | "
                      f"{pm('col_per_1k')} | {pm('drop_rate', 100)} | {viol} | {wall_viol} | {corr} |")
     if summary.get("headline"):
@@ -373,7 +353,7 @@ def write_figures(results: list[Result], summary: dict, out_dir: Path) -> list[P
     fig, axes = plt.subplots(2, 2, figsize=(9, 6))
     for ax, (key, title) in zip(axes.flat, panels):
         for m in methods:
-            if not SHIELDED[m]:
+            if not METHOD_SPECS[m].shielded:
                 continue
             g, mu, sd = _curves(results, m, key)
             ax.plot(g, mu, color=colors[m], label=METHOD_TITLES[m]); ax.fill_between(g, mu - sd, mu + sd, color=colors[m], alpha=0.15)
@@ -410,3 +390,23 @@ def write_report(result_paths: Iterable[Path], out_dir: Path) -> dict:
     figures = write_figures(results, summary, out_dir)
     return {"table": str(out_dir / "table1.md"), "summary": str(out_dir / "summary.json"),
             "figures": [str(p) for p in figures], "runs": len(results)}
+
+
+# ----------------------------------------------------------------- command line
+def register(commands, bench) -> None:
+    p = commands.add_parser("report", help="Table I (Markdown) and the paper's figures from suite results")
+    p.add_argument("results", nargs="+", help="result JSON files or directories holding them")
+    p.add_argument("--out", default="results/report")
+    p.set_defaults(func=_report)
+
+
+def _report(args: argparse.Namespace) -> int:
+    paths = []
+    for item in args.results:
+        p = Path(item)
+        paths += sorted(p.glob("*.json")) if p.is_dir() else [p]
+    paths = [p for p in paths if p.name not in ("suite_config.json", "summary.json")]
+    out = write_report(paths, Path(args.out))
+    print(Path(out["table"]).read_text())
+    print(json.dumps(out, indent=2))
+    return 0

@@ -2,13 +2,14 @@
 
 Each run is an independent `sage train` subprocess (its own in-process
 services, one core's worth of work) followed by a deployment evaluation; the
-suite then writes one JSON result per run (the schema `common.report` reads).
+suite then writes one JSON result per run (the schema `sage.report` reads).
 A run whose result file exists is skipped, so an interrupted suite resumes
 where it stopped. Runs are scheduled over ``--workers`` parallel slots
 (default: the number of cores).
 """
 from __future__ import annotations
 
+import argparse
 import itertools
 import json
 import os
@@ -18,7 +19,11 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from common.report import CURVE_KEYS, FAMILIES, METHODS
+from common.algos.registry import METHODS
+from common.env.scenarios import FAMILIES
+from common.rundir import RunDir, atomic_write_text, read_jsonl
+from sage.evaluate import eval_record
+from sage.report import CURVE_KEYS
 
 
 @dataclass
@@ -59,7 +64,7 @@ def plan(cfg: SuiteConfig) -> list[RunSpec]:
 def train_command(cfg: SuiteConfig, spec: RunSpec, run_dir: Path) -> list[str]:
     updates = ["--updates", str(cfg.updates_per_run)] if cfg.updates_per_run else []
     return [
-        sys.executable, "-m", "common.cli", "train",
+        sys.executable, "-m", "sage", "train",
         "--method", spec.method, "--scenario", spec.scenario, "--seed", str(spec.seed),
         "--minutes", str(cfg.minutes_per_run), "--envs-per-actor", str(cfg.envs_per_actor),
         "--eval-episodes", str(cfg.eval_episodes), "--run-dir", str(run_dir), "--quiet",
@@ -68,16 +73,13 @@ def train_command(cfg: SuiteConfig, spec: RunSpec, run_dir: Path) -> list[str]:
 
 def collect_result(spec: RunSpec, run_dir: Path, budget: dict) -> dict:
     """Build the report's result record from a finished run directory."""
-    from common.deploy_eval import eval_record
-
-    metrics_path = run_dir / "metrics.jsonl"
-    summary_path = run_dir / "summary.json"
-    summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
+    run = RunDir(run_dir)
+    summary = json.loads(run.summary.read_text()) if run.summary.exists() else {}
     if "eval" not in summary:
         raise FileNotFoundError(f"{run_dir}: summary.json has no final evaluation (training did not finish)")
     curve = []
-    if metrics_path.exists():
-        rows = [json.loads(line) for line in metrics_path.read_text().splitlines() if line.strip()]
+    rows = read_jsonl(run.metrics_jsonl)
+    if rows:
         total = max((r.get("env_steps", 0) for r in rows), default=0) or 1
         for r in rows:
             point = dict(r)
@@ -97,14 +99,14 @@ def collect_result(spec: RunSpec, run_dir: Path, budget: dict) -> dict:
 def run_suite(cfg: SuiteConfig, log=print) -> list[Path]:
     out = Path(cfg.out_dir)
     (out / "runs").mkdir(parents=True, exist_ok=True)
-    (out / "suite_config.json").write_text(json.dumps(asdict(cfg), indent=2))
+    atomic_write_text(out / "suite_config.json", json.dumps(asdict(cfg), indent=2))
     pending = [s for s in plan(cfg) if not (out / f"{s.name}.json").exists()]
     log(f"suite: {len(plan(cfg)) - len(pending)} done, {len(pending)} to run on {cfg.workers} workers")
     running: dict[RunSpec, tuple[subprocess.Popen, float]] = {}
     written: list[Path] = []
     failures = 0
     # A single-threaded torch per run keeps `workers` runs from oversubscribing the cores.
-    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", SAGE_TORCH_THREADS="1")
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     while pending or running:
         while pending and len(running) < cfg.workers:
             spec = pending.pop(0)
@@ -128,10 +130,8 @@ def run_suite(cfg: SuiteConfig, log=print) -> list[Path]:
                       "envs_per_actor": cfg.envs_per_actor, "eval_episodes": cfg.eval_episodes,
                       "overrides": list(cfg.train_overrides)}
             record = collect_result(spec, run_dir, budget)
-            path = out / f"{spec.name}.json"
-            tmp = path.with_suffix(".json.tmp")
-            tmp.write_text(json.dumps(record, indent=1))
-            os.replace(tmp, path)  # atomic: a half-written result never counts as done
+            # atomic: a half-written result never counts as done
+            path = atomic_write_text(out / f"{spec.name}.json", json.dumps(record, indent=1))
             written.append(path)
             ev = record["eval"]
             log(f"suite: {spec.name} SR={ev.get('success_rate', float('nan')):.2f} "
@@ -139,3 +139,46 @@ def run_suite(cfg: SuiteConfig, log=print) -> list[Path]:
     if failures:
         log(f"suite: {failures} runs failed")
     return written
+
+
+# ----------------------------------------------------------------- command line
+def register(commands, bench) -> None:
+    d = SuiteConfig()
+    p = commands.add_parser("suite", help="train methods x scenarios x seeds under a budget (resumable)")
+    p.add_argument("--methods", default=",".join(d.methods))
+    p.add_argument("--scenarios", default="all", help="comma list, a family (LCP/STR/CCN) or 'all'")
+    p.add_argument("--seeds", default=",".join(map(str, d.seeds)))
+    p.add_argument("--minutes-per-run", type=float, default=d.minutes_per_run)
+    p.add_argument("--updates-per-run", type=int, default=d.updates_per_run,
+                   help="learner updates per run (same samples for every method); with "
+                        "--minutes-per-run, whichever ends first")
+    p.add_argument("--eval-episodes", type=int, default=d.eval_episodes)
+    p.add_argument("--envs-per-actor", type=int, default=d.envs_per_actor)
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="passed to every `sage train` (e.g. --set algo.actor_lr=1e-3)")
+    p.add_argument("--workers", type=int, default=None, help="parallel runs (default: cores)")
+    p.add_argument("--out", default=d.out_dir)
+    p.set_defaults(func=_suite)
+
+
+def _scenarios(arg: str) -> list[str]:
+    if arg == "all":
+        return [s for f in FAMILIES.values() for s in f]
+    out = []
+    for part in arg.split(","):
+        out += FAMILIES.get(part, [part])
+    return out
+
+
+def _suite(args: argparse.Namespace) -> int:
+    cfg = SuiteConfig(
+        methods=args.methods.split(","), scenarios=_scenarios(args.scenarios),
+        seeds=[int(s) for s in args.seeds.split(",")], minutes_per_run=args.minutes_per_run,
+        updates_per_run=args.updates_per_run,
+        eval_episodes=args.eval_episodes, envs_per_actor=args.envs_per_actor, out_dir=args.out,
+        train_overrides=list(args.set),
+    )
+    if args.workers:
+        cfg.workers = args.workers
+    run_suite(cfg)
+    return 0

@@ -1,18 +1,33 @@
-"""``sage train``: the main job (in-process services by default)."""
+"""``sage train`` (the main job: in-process services by default, or supervised
+processes) and ``sage up`` (the supervisor alone, e.g. one host's share of a run).
+
+Every default comes from ``services.config.TrainConfig``; the flags only
+override it.
+"""
 from __future__ import annotations
 
+import argparse
+import dataclasses
 import json
 import logging
 import sys
 from pathlib import Path
 
-from services.config import METHODS, TrainConfig
+from common.algos.registry import METHODS, method_spec
+from common.env.scenarios import SCENARIOS
+from common.evaluation.deployment import evaluate_policy
+from common.rundir import RunDir, atomic_write_text
+from deploy.sage_run import METRICS_OFFSETS, default_actor_count, parse_ids, run_supervised
+from deploy.supervisor import EXIT_GAVE_UP
+from sage.runs import last_progress, load_run
+from services.config import FINAL_EVAL_SEED, TrainConfig
+from services.launcher import ROLES, run_inprocess
 
 
 def register(commands, bench) -> None:
     d = TrainConfig()
     p = commands.add_parser("train", help="train a method with actor/shield/learner services")
-    p.add_argument("--scenario", default=d.scenario)
+    p.add_argument("--scenario", default=d.scenario, choices=sorted(SCENARIOS))
     p.add_argument("--method", default=d.method, choices=METHODS)
     p.add_argument("--updates", type=int, default=None,
                    help=f"learner updates (budget; default {d.updates}, or unlimited when --minutes is given)")
@@ -26,7 +41,8 @@ def register(commands, bench) -> None:
     p.add_argument("--run-dir", default="")
     p.add_argument("--mode", default=d.mode, choices=("inprocess", "supervised"))
     p.add_argument("--eval-episodes", type=int, default=d.eval_episodes)
-    p.add_argument("--metrics-port", type=int, default=0, help="Prometheus port (in-process registry); 0 = off")
+    p.add_argument("--metrics-port", type=int, default=d.ports.inprocess,
+                   help="Prometheus port (in-process registry); 0 = off")
     p.add_argument("--config", default=None, help="start from a saved config JSON (flags override)")
     p.add_argument("--human-slot", type=int, default=None, choices=(0, 1, 2),
                    help="put the scripted human partner in this carrier slot (exogenous, no tree)")
@@ -36,7 +52,13 @@ def register(commands, bench) -> None:
     p.add_argument("--quiet", action="store_true", help="no live progress line")
     p.set_defaults(func=cmd_train)
 
+    p = commands.add_parser("up", help="run learner, shield and actors as supervised processes (restarts, "
+                                       "clean shutdown, live status)")
+    add_up_arguments(p)
+    p.set_defaults(func=cmd_up)
 
+
+# ----------------------------------------------------------------- sage train
 def config_from_args(args) -> TrainConfig:
     cfg = TrainConfig.load(args.config) if args.config else TrainConfig()
     if args.updates is not None:
@@ -65,8 +87,6 @@ def config_from_args(args) -> TrainConfig:
 def apply_override(cfg: TrainConfig, item: str) -> None:
     """``SECTION.KEY=VALUE`` onto the config (env/algo dicts, a nested dataclass, or
     ``train.KEY`` for a plain top-level TrainConfig field)."""
-    import dataclasses
-
     if "=" not in item or "." not in item.split("=", 1)[0]:
         raise SystemExit(f"--set expects SECTION.KEY=VALUE, got {item!r}")
     path, raw = item.split("=", 1)
@@ -92,43 +112,32 @@ def apply_override(cfg: TrainConfig, item: str) -> None:
 
 
 def final_eval(cfg: TrainConfig, params: dict) -> dict:
-    from common.evaluation import evaluate_policy
-    from services.config import FINAL_EVAL_SEED
-
     return evaluate_policy(params, cfg.env_config(), cfg.eval_episodes, seed=FINAL_EVAL_SEED + cfg.seed,
-                           shielded=cfg.method != "happo", max_steps=cfg.eval_max_steps or None)
+                           shielded=method_spec(cfg.method).shielded, max_steps=cfg.eval_max_steps or None)
 
 
 def cmd_train(args) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     cfg = config_from_args(args)
-    run = Path(cfg.run_dir)
+    run = RunDir(cfg.run_dir)
     clash = _resume_clash(run, cfg)
     if clash:
-        print(f"sage train: {run} holds a run of {clash}; the learner would resume its checkpoints. "
+        print(f"sage train: {run.root} holds a run of {clash}; the learner would resume its checkpoints. "
               "Use another --run-dir (or the same method and scenario to resume).", file=sys.stderr)
         return 2
-    cfg_path = cfg.save(run / "config.json")
+    cfg_path = cfg.save(run.config)
     print(f"run {cfg.run_id}: {cfg.method} on {cfg.scenario}, {cfg.actors} actor(s) x {cfg.envs_per_actor} envs, "
-          f"mode {cfg.mode}, run dir {run}", file=sys.stderr)
+          f"mode {cfg.mode}, run dir {run.root}", file=sys.stderr)
     if cfg.mode == "supervised":
-        try:
-            from deploy.supervisor import run_supervised
-        except ImportError as exc:
-            print(f"supervised mode needs deploy/supervisor.py ({exc})", file=sys.stderr)
-            return 2
         code = int(run_supervised(str(cfg_path)) or 0)
         if code:
             return code
-        from common.checkpoint import load_latest
-
-        ck = load_latest(run / "checkpoints")
-        params = _params_from_checkpoint(cfg, ck) if ck else None
-        summary = {"mode": "supervised", "version": int(ck["version"]) if ck else None,
-                   **_last_progress(run / "metrics.jsonl")}
+        try:
+            _, params, version = load_run(run.root)
+        except FileNotFoundError:
+            params, version = None, None
+        summary = {"mode": "supervised", "version": version, **last_progress(run)}
     else:
-        from services.inprocess import run_inprocess
-
         out = run_inprocess(cfg, progress=not args.quiet)
         params = out.pop("params")
         out.pop("status", None)
@@ -139,34 +148,18 @@ def cmd_train(args) -> int:
         print(f"eval ({e['episodes_finished']} episodes, {'shielded' if e['shielded'] else 'unshielded'}): "
               f"SR {e['success_rate']:.2f}  return {e['return_mean']:.2f}  col/1k {e['col_per_1k']:.2f}  "
               f"intervention {e['intervention_rate']:.2f}", file=sys.stderr)
-    (run / "summary.json").write_text(json.dumps(summary, indent=2, default=_num) + "\n")
-    print(json.dumps({"run_dir": str(run), "version": summary.get("version"),
+    atomic_write_text(run.summary, json.dumps(summary, indent=2, default=_num) + "\n")
+    print(json.dumps({"run_dir": str(run.root), "version": summary.get("version"),
                       "updates": summary.get("updates")}))
     return 0
 
 
-def _last_progress(metrics_path: Path) -> dict:
-    """Updates and env steps from the learner's last metrics row (the supervised
-    learner runs in another process, so its counters reach us through its log)."""
-    last = None
-    if metrics_path.exists():
-        for line in metrics_path.read_text().splitlines():
-            try:
-                last = json.loads(line)
-            except json.JSONDecodeError:
-                continue  # a line cut short by a killed learner
-    if not last:
-        return {}
-    return {"updates": last.get("update"), "env_steps": last.get("env_steps")}
-
-
-def _resume_clash(run: Path, cfg: TrainConfig) -> str | None:
+def _resume_clash(run: RunDir, cfg: TrainConfig) -> str | None:
     """What an existing run directory holds when it cannot be resumed by ``cfg``."""
-    old = run / "config.json"
-    if not old.exists():
+    if not run.config.exists():
         return None
     try:
-        prev = json.loads(old.read_text())
+        prev = json.loads(run.config.read_text())
     except json.JSONDecodeError:
         return "an unreadable config.json"
     if (prev.get("method"), prev.get("scenario")) != (cfg.method, cfg.scenario):
@@ -174,15 +167,65 @@ def _resume_clash(run: Path, cfg: TrainConfig) -> str | None:
     return None
 
 
-def _params_from_checkpoint(cfg: TrainConfig, ck: dict) -> dict:
-    from services.learner.service import _default_method
-
-    method = _default_method(cfg)
-    method.load_state_dict(ck["method"])
-    return method.policy_params()
-
-
 def _num(o):
     if hasattr(o, "tolist"):
         return o.tolist()
     return str(o)
+
+
+# ----------------------------------------------------------------- sage up
+def add_up_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", default=None, help="run config JSON (services/config.py); default: a fresh one")
+    p.add_argument("--actors", type=int, default=None,
+                   help=f"number of actors in the run (default: config's value, or cores-1 = {default_actor_count()} "
+                        "for a fresh config)")
+    p.add_argument("--roles", default=",".join(ROLES), help="which services this host runs (default: all)")
+    p.add_argument("--actor-ids", default=None, help="actor ids this host runs, e.g. 2-3 (default: all)")
+    p.add_argument("--connect", action="append", default=None,
+                   help="Zenoh router endpoint, e.g. tcp/10.0.0.1:7447 (repeatable; default: start a local router)")
+    p.add_argument("--metrics-base", type=int, default=None,
+                   help="Prometheus ports: base learner, base+1 shield, base+10+i actor i (e.g. 9400; 0 = off)")
+    fresh = p.add_argument_group("fresh run (without --config)")
+    fresh.add_argument("--scenario", default=None)
+    fresh.add_argument("--method", default=None)
+    fresh.add_argument("--updates", type=int, default=None)
+    fresh.add_argument("--minutes", type=float, default=None)
+    fresh.add_argument("--envs-per-actor", type=int, default=None)
+    fresh.add_argument("--seed", type=int, default=None)
+    fresh.add_argument("--run-id", default=None)
+    fresh.add_argument("--run-dir", default=None)
+
+
+def up_config_from_args(args) -> Path:
+    """Write the run config the supervisor will use and return its path."""
+    cfg = TrainConfig.load(args.config) if args.config else TrainConfig(actors=default_actor_count())
+    for name in ("actors", "scenario", "method", "updates", "minutes", "envs_per_actor", "seed", "run_id", "run_dir"):
+        value = getattr(args, name)
+        if value is not None:
+            setattr(cfg, name, value)
+    if args.connect:
+        cfg.transport.connect = list(args.connect)
+        cfg.transport.mode = "client"  # reach the other services through the router
+    if args.metrics_base is not None:
+        base = args.metrics_base
+        cfg.ports.learner = base + METRICS_OFFSETS["learner"] if base else 0
+        cfg.ports.shield = base + METRICS_OFFSETS["shield"] if base else 0
+        cfg.ports.actor_base = base + METRICS_OFFSETS["actor_base"] if base else 0
+    cfg.mode = "supervised"
+    cfg.resolve()
+    return cfg.save(RunDir(cfg.run_dir).config)
+
+
+def cmd_up(args) -> int:
+    roles = [r.strip() for r in args.roles.split(",") if r.strip()]
+    try:
+        path = up_config_from_args(args)
+        ids = parse_ids(args.actor_ids) if args.actor_ids else None
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"sage up: {exc}", file=sys.stderr)
+        return 2
+    try:
+        return run_supervised(path, roles=roles, actor_ids=ids)
+    except (RuntimeError, ValueError) as exc:  # e.g. a bad role, or the local router never came up
+        print(f"sage up: {exc}", file=sys.stderr)
+        return EXIT_GAVE_UP if isinstance(exc, RuntimeError) else 2

@@ -5,7 +5,7 @@ Two independent pieces live here:
 * ``solve_batch_active_set``: a Goldfarb–Idnani dual active-set solver for
   ``min ½‖y − y0‖²  s.t.  N y ≥ b`` (Hessian = I, so the factor ``J`` starts as
   the identity). The action box enters as ordinary rows ``±e_k``. Infeasible
-  row sets fall back to the slack QP documented in ``common/qp.py``.
+  row sets fall back to the slack QP documented in ``common/shield/qp.py``.
 * ``diagnostics_batch``: KKT residuals computed from the returned primal only,
   with multipliers re-derived by a separate Lawson–Hanson NNLS, so a bug in the
   solver cannot hide itself in its own certificate.

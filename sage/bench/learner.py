@@ -2,6 +2,7 @@
 same synthetic batch, as ratios to HAPPO (same run, same machine)."""
 from __future__ import annotations
 
+import json
 import statistics
 import time
 
@@ -11,17 +12,14 @@ import torch
 from common.algos.config import AlgoConfig
 from common.algos.methods import make_method
 from common.algos.synthetic import BanditTask, collect
+from common.env.observations import OBS_DIM
 
 BENCH_METHODS = ("happo", "sail_cbf", "talo_cbf", "sage")
 
 
 def default_obs_dim() -> tuple[int, str]:
-    """The environment's observation size if the env package is importable, else 40."""
-    try:
-        from common.env import OBS_FEATURE_NAMES  # noqa: PLC0415
-        return len(OBS_FEATURE_NAMES), "env"
-    except (ImportError, AttributeError):
-        return 40, "default"
+    """The environment's observation size (and where it came from)."""
+    return OBS_DIM, "env"
 
 
 def bench_learner(T: int = 64, K: int = 32, obs_dim: int | None = None, rows: int = 34,
@@ -63,3 +61,31 @@ def bench_learner(T: int = 64, K: int = 32, obs_dim: int | None = None, rows: in
         "sage_within_target": (update_s["sage"] / update_s["happo"] <= 3.0) if "sage" in update_s else None,
         "w_gap": {k: d.get("w_gap") for k, d in last_diag.items()},
     }
+
+
+# ----------------------------------------------------------------- command line
+def register(commands, bench) -> None:
+    p = bench.add_parser(
+        "learner", help="seconds per learner update for happo, sail_cbf, talo_cbf, sage (ratios to happo)")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.add_argument("--T", type=int, default=64, help="rollout length per env")
+    p.add_argument("--K", type=int, default=32, help="envs per batch")
+    p.add_argument("--obs-dim", type=int, default=None, help="default: the env's obs_dim (else 40)")
+    p.add_argument("--rows", type=int, default=34, help="safety rows M")
+    p.add_argument("--repeats", type=int, default=3, help="timed updates per method (median)")
+    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_bench_handler)
+
+
+def _bench_handler(args) -> int:
+    out = bench_learner(T=args.T, K=args.K, obs_dim=args.obs_dim, rows=args.rows,
+                        repeats=args.repeats, threads=args.threads, seed=args.seed)
+    if args.json:
+        print(json.dumps(out, indent=2))
+    else:
+        print(f"learner update, {out['samples']} samples ({out['T']}x{out['K']}), obs_dim {out['obs_dim']}, "
+              f"{out['epochs']} epochs x {out['minibatches']} minibatches")
+        for name, s in out["update_s"].items():
+            print(f"  {name:10s} {s:8.3f} s   {out['ratio_vs_happo'][name]:5.2f}x happo")
+    return 0

@@ -3,7 +3,7 @@
     a_bar = argmin_x  1/2 ||x - a_ST||^2 + kappa/2 * sum_j [c_j - C_j x]_+^2
 
 over x in R^d (no box: the proposal distribution handles the box, see
-common/proposal.py). Rows are normalized first (`normalize_rows`) so the
+common/policy/proposal.py). Rows are normalized first (`normalize_rows`) so the
 penalty does not depend on row units; zero and masked rows are ignored.
 
 Solver: a fixed number of damped Newton steps from x_0 = a_ST, unrolled (and in
@@ -306,3 +306,43 @@ def sail_project(
                 t = torch.where(exact, t, _line_search_torch(x, dx, a, Cn, cn, kappa))
         x = x + t[:, None] * dx
     return x
+
+
+def sail_center_implicit(a_st: torch.Tensor, C: torch.Tensor, c: torch.Tensor, mask: torch.Tensor,
+                         kappa: float, fixed: torch.Tensor, human: torch.Tensor, config: SailConfig,
+                         x_star: torch.Tensor | None = None) -> torch.Tensor:
+    """SAIL center (Eq. sail_projection) with implicit-function gradients.
+
+    Forward: the actors' own numpy solver (common.policy.sail.sail_project_np, same
+    config), so the learner's center equals the one the behaviour log-probs
+    were computed with. Graph: one Newton step taken from that (constant)
+    solution x*,
+
+        x = x* - H^{-1} [(x* - a_ST) - kappa C_J^T r_J(x*)],  H = I + kappa C_J^T C_J,
+
+    whose value is x* (the gradient vanishes there) and whose Jacobian in
+    a_ST is (I + kappa C_J^T C_J)^{-1}, Eq. (sail_jacobian) of the ideal
+    minimizer. It equals the unrolled map's Jacobian once its last full
+    Newton step keeps the active set (see the module docstring), at the cost of one
+    batched 9x9 solve instead of differentiating every unrolled step.
+    ``x_star`` may pass a forward solution already computed for these values.
+    """
+    import torch
+
+    a64 = a_st.double()
+    if x_star is None:
+        x_star = torch.as_tensor(sail_project_np(
+            a64.detach().cpu().numpy(), C.cpu().numpy(), c.cpu().numpy(), mask.cpu().numpy(), kappa,
+            n_newton=config.n_newton, damping=config.damping,
+            fixed_mask=fixed.cpu().numpy(), fixed_action=human.cpu().numpy(), config=config,
+        ), dtype=torch.float64, device=a_st.device)
+    x_star = x_star.detach().double()
+    a = torch.where(fixed, human.double(), a64)
+    Cf, cf = absorb_fixed(C.double(), c.double(), fixed, human.double())
+    Cn, cn, keep = normalize_rows(Cf, cf, mask, config.row_tol)
+    r = cn - torch.einsum("bmd,bd->bm", Cn, x_star)
+    act = ((r > 0) & keep).double()
+    Ca = Cn * act[..., None]
+    H = torch.eye(a.shape[1], dtype=torch.float64) + kappa * torch.einsum("bmd,bme->bde", Ca, Ca)
+    grad = (x_star - a) - kappa * torch.einsum("bm,bmd->bd", r * act, Cn)
+    return x_star - torch.linalg.solve(H, grad[..., None])[..., 0]

@@ -10,7 +10,7 @@ active-set answer to ~1e-7.
 
 Infeasible row sets: OSQP's primal-infeasibility certificate (or a constant
 row violated by the fixed block) triggers the fail-closed slack QP of
-common/qp.py. OSQP itself does not converge on that QP (ρ = 1e6 makes the
+common/shield/qp.py. OSQP itself does not converge on that QP (ρ = 1e6 makes the
 multipliers ~1e5; it hits max_iter far from the answer), so those problems are
 handed to the active-set kernel, which solves the same lifted slack QP exactly.
 """
@@ -20,7 +20,7 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
-from common.qp_kernels import STATUS_MAX_ITER, STATUS_OPTIMAL, solve_batch_active_set
+from common.shield.kernels import STATUS_MAX_ITER, STATUS_OPTIMAL, solve_batch_active_set
 
 _SOLVED = int(osqp.SolverStatus.OSQP_SOLVED)
 _INFEASIBLE = (int(osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE),

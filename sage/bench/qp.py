@@ -1,7 +1,7 @@
 """`sage bench qp`: amortized cost of the joint CBF-QP shield (Eq. qpshield).
 
-Times every backend of common.qp on one batch of random CBF-like problems
-(common.qp_random) and, in the same run, a plain loop that builds and solves a
+Times every backend of common.shield.qp on one batch of random CBF-like problems
+(common.shield.random_problems) and, in the same run, a plain loop that builds and solves a
 fresh OSQP problem per QP with default settings; prints same-run ratios.
 Numba compile time is excluded (one warm-up call per backend first).
 """
@@ -14,6 +14,9 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+
+from common.shield.qp import BACKENDS, DEFAULT_BACKEND, qp_violation, solve_cbf_qp
+from common.shield.random_problems import random_cbf_problems
 
 TARGET_US_PER_QP = 20.0  # issue 2: default backend, batch 256, one core
 
@@ -60,9 +63,6 @@ def _fresh_osqp_loop(a, C, c, lo=-1.0, hi=1.0) -> np.ndarray:
 
 
 def run_qp_bench(cfg: QPBenchConfig) -> dict:
-    from common.qp import BACKENDS, DEFAULT_BACKEND, qp_violation, solve_cbf_qp
-    from common.qp_random import random_cbf_problems
-
     rng = np.random.default_rng(cfg.seed)
     a, C, c, _ = random_cbf_problems(rng, cfg.batch, cfg.rows, cfg.d, cfg.violated_frac)
     results, timings = {}, {}

@@ -35,7 +35,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.qp_kernels import (
+from common.safety_rows import SafetyRows
+from common.shield.kernels import (
     STATUS_INFEASIBLE,
     STATUS_MAX_ITER,
     STATUS_OPTIMAL,
@@ -45,7 +46,7 @@ from common.qp_kernels import (
 
 __all__ = [
     "STATUS_OPTIMAL", "STATUS_INFEASIBLE", "STATUS_MAX_ITER", "QPConfig", "QPResult",
-    "InvalidQPInput", "solve_cbf_qp", "qp_violation", "BACKENDS", "DEFAULT_BACKEND",
+    "InvalidQPInput", "solve_cbf_qp", "shield_actions", "qp_violation", "BACKENDS", "DEFAULT_BACKEND",
 ]
 
 
@@ -92,7 +93,7 @@ def _active_set_backend(a, C, c, row_mask, fixed, lo, hi, cfg):
 
 
 def _osqp_backend(a, C, c, row_mask, fixed, lo, hi, cfg):
-    from common.qp_osqp import solve_batch_osqp  # osqp/scipy load only when asked for
+    from common.shield.osqp_backend import solve_batch_osqp  # osqp/scipy load only when asked for
 
     return solve_batch_osqp(a, C, c, row_mask, fixed, lo, hi, cfg)
 
@@ -195,6 +196,11 @@ def solve_cbf_qp(a_prop, C, c, row_mask=None, fixed_mask=None, lo=-1.0, hi=1.0,
                       active, corr, kkt, slack)
     return QPResult(a_exec=x, status=status, active=active, correction_norm=corr,
                     kkt_residual=kkt, slack=slack, iterations=iters)
+
+
+def shield_actions(a_prop, rows: SafetyRows, backend: str = "default", config: QPConfig | None = None) -> QPResult:
+    """Eq. (qpshield) on one step's ``SafetyRows``: the executed actions of B envs."""
+    return solve_cbf_qp(a_prop, rows.C, rows.c, rows.row_mask, rows.fixed_mask, backend=backend, config=config)
 
 
 def qp_violation(a, C, c, row_mask=None) -> np.ndarray:

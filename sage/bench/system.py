@@ -19,8 +19,8 @@ to its in-process twin.
   (``LocalQPActor``) -- no learner, parameters from the bench (target >= 0.7).
 
 Child entry points of the bench (also run under the supervisor):
-``python -m common.system_bench local-actor --config RUN.json --actor-id I``
-and ``python -m common.system_bench echo --config RUN.json``. Their extra key
+``python -m sage.bench.system local-actor --config RUN.json --actor-id I``
+and ``python -m sage.bench.system echo --config RUN.json``. Their extra key
 ``sage/<run>/bench/ack`` (msgpack map ``seq, t_sent, t_recv, t_decoded``) is
 used by the bench only.
 """
@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
 import tempfile
 import threading
@@ -38,6 +39,21 @@ from pathlib import Path
 
 import msgpack
 import numpy as np
+
+from common import keys, wire
+from common.env.batch_env import BatchEnv
+from common.safety_rows import SafetyRows
+from common.shield.qp import shield_actions
+from common.spec import JOINT_ACT_DIM
+from common.transport import Bus
+from deploy.sage_run import router_spec, service_specs
+from deploy.supervisor import ServiceSpec, Supervisor, SupervisorConfig, free_tcp_port
+from services.actor.service import ActorService
+from services.base import run_entry
+from services.config import TrainConfig
+from services.launcher import ServiceThreads
+from services.learner.service import LearnerService, build_method
+from services.shield.service import ShieldService
 
 RATIO_TARGET = 0.7
 
@@ -84,8 +100,6 @@ class StepMeter:
         self._lock = threading.Lock()
 
     def on_status(self, _key: str, payload: bytes) -> None:
-        from common import wire
-
         try:
             msg = wire.decode(payload, run_id=self.run_id, expect="status")
         except wire.WireError:
@@ -130,40 +144,26 @@ class StepMeter:
 
 
 # ----------------------------------------------------------------- the actor with a local QP
-def _local_qp_actor_class():
-    from common.qp import solve_cbf_qp
-    from services.actor.service import ActorService
+class LocalQPActor(ActorService):
+    """The actor service with the exact joint CBF-QP (Eq. qpshield) solved
+    in-process instead of by the shield service: the reference of
+    ``ratio_vs_local_qp``."""
 
-    class LocalQPActor(ActorService):
-        """The actor service with the exact joint CBF-QP (Eq. qpshield) solved
-        in-process instead of by the shield service: the reference of
-        ``ratio_vs_local_qp``."""
-
-        def filter_actions(self, a_prop, C, c, row_mask, fixed_mask):
-            t0 = time.perf_counter()
-            res = solve_cbf_qp(a_prop, C, c, row_mask, fixed_mask, backend=self.cfg.shield.backend)
-            self.rtt.add(time.perf_counter() - t0)
-            return np.asarray(res.a_exec, dtype=np.float64)
-
-    return LocalQPActor
+    def filter_actions(self, a_prop, rows: SafetyRows):
+        t0 = time.perf_counter()
+        res = shield_actions(a_prop, rows, backend=self.cfg.shield.backend)
+        self.rtt.add(time.perf_counter() - t0)
+        return np.asarray(res.a_exec, dtype=np.float64)
 
 
 def ack_key(run_id: str) -> str:
-    from common import keys
-
     return f"{keys.run_root(run_id)}/bench/ack"
 
 
 def echo_main(argv) -> int:
     """Child: decode every parameter broadcast as an actor would, then ack it
     with the publish time, the receive time and the decoded time."""
-    import signal
-
-    from common import keys, wire
-    from common.transport import Bus
-    from services.config import TrainConfig
-
-    p = argparse.ArgumentParser(prog="python -m common.system_bench echo")
+    p = argparse.ArgumentParser(prog="python -m sage.bench.system echo")
     p.add_argument("--config", required=True)
     cfg = TrainConfig.load(p.parse_args(argv).config)
     stop = threading.Event()
@@ -209,8 +209,6 @@ class SystemBench:
         batch does not depend on how many actors are up yet. ``unpaced``: the
         actor never waits for the learner (phase 1 has none: it measures the
         actor's own stepping rate)."""
-        from services.config import TrainConfig
-
         self._n += 1
         run_id = f"bench-{tag}-{os.getpid()}-{self._n}"
         cfg = TrainConfig(run_id=run_id, run_dir=str(self.work / run_id), scenario=self.cfg.scenario,
@@ -231,8 +229,6 @@ class SystemBench:
         """Start ``specs`` under a supervisor. By default a crash fails the
         benchmark; with a ``restart_budget`` crashed services are restarted
         and counted (``restarts`` in the result) instead."""
-        from deploy.supervisor import Supervisor, SupervisorConfig
-
         cfg = SupervisorConfig(restart_budget=restart_budget, backoff_initial_s=0.2, term_deadline_s=10.0)
         sup = Supervisor(specs, run_dir, cfg, out=sys.stderr)
         self._sups.append(sup)
@@ -259,27 +255,20 @@ class SystemBench:
     def requests(self) -> dict[int, dict]:
         """Shield problems per batch size: the scenario's real safety rows at
         reset of ``max(batch_sizes)`` envs, random proposals in the action box."""
-        from common.env.batch_env import BatchEnv
-        from services.config import TrainConfig
-
         n = max(self.cfg.batch_sizes)
         out = BatchEnv(TrainConfig(scenario=self.cfg.scenario).env_config(), n, seed=self.cfg.seed).reset()
-        full = {"a_prop": np.random.default_rng(self.cfg.seed).uniform(-1, 1, size=(n, 9)), "C": out["C"],
-                "c": out["c"], "row_mask": out["row_mask"], "fixed_mask": out["fixed_mask"]}
+        full = {"a_prop": np.random.default_rng(self.cfg.seed).uniform(-1, 1, size=(n, JOINT_ACT_DIM)),
+                **SafetyRows.of(out).as_dict()}
         return {B: {k: np.ascontiguousarray(v[:B]) for k, v in full.items()} for B in self.cfg.batch_sizes}
 
     def _learner(self, cfg, bus):
         """The real learner service object, used only for ``publish_params``."""
-        from services.learner.service import LearnerService, _default_method
-
         learner = LearnerService(cfg, bus, 0)
-        learner.method = _default_method(cfg)
+        learner.method = build_method(cfg)
         return learner
 
     # ------------------------------------------------------------- measurements
     def _rtt(self, bus, run_id: str, batches: dict[int, dict]) -> dict:
-        from common import keys, wire
-
         out = {}
         for B, body in batches.items():
             samples = []
@@ -291,7 +280,7 @@ class SystemBench:
                 if reply is None or reply.ok is None:
                     raise RuntimeError(f"shield gave no answer for a batch of {B}: {reply}")
                 rep = wire.decode(reply.ok, run_id=run_id, expect="shield_rep")
-                if rep.body["a_exec"].shape != (B, 9):
+                if rep.body["a_exec"].shape != (B, JOINT_ACT_DIM):
                     raise RuntimeError(f"shield answered shape {rep.body['a_exec'].shape} for {B} problems")
                 if i >= 10:
                     samples.append(dt)
@@ -299,14 +288,12 @@ class SystemBench:
         return out
 
     def _local_qp(self, batches: dict[int, dict]) -> dict:
-        from common.qp import solve_cbf_qp
-
         out = {}
         for B, b in batches.items():
             samples = []
             for i in range(10 + self.cfg.rtt_requests):
                 t0 = time.perf_counter()
-                solve_cbf_qp(b["a_prop"], b["C"], b["c"], b["row_mask"], b["fixed_mask"])
+                shield_actions(b["a_prop"], SafetyRows.of(b))
                 if i >= 10:
                     samples.append(time.perf_counter() - t0)
             out[B] = quantiles_ms(samples)
@@ -315,8 +302,6 @@ class SystemBench:
     def _broadcast(self, bus, learner, run_id: str, local: bool) -> dict:
         """``broadcasts`` parameter messages, one at a time; latency publish ->
         decoded, from the echo child's acks or (``local``) a subscriber here."""
-        from common import keys, wire
-
         acks: list[dict] = []
         if local:
             def on_params(_k, payload):
@@ -342,8 +327,6 @@ class SystemBench:
 
     @staticmethod
     def _params_bytes(learner, run_id: str) -> int:
-        from common import wire
-
         params = {k: np.asarray(v) for k, v in learner.method.policy_params().items()
                   if np.asarray(v).dtype.kind in "fiub"}
         return len(wire.encode("params", {"version": 0, "incarnation": learner.incarnation, "method": "x",
@@ -352,10 +335,8 @@ class SystemBench:
 
     def _wait_shield(self, bus, run_id: str, alive) -> None:
         """Until the shield answers a trivial request (its queryable is declared)."""
-        from common import keys, wire
-
-        body = {"a_prop": np.zeros((1, 9)), "C": np.zeros((1, 1, 9)), "c": np.zeros((1, 1)),
-                "row_mask": np.zeros((1, 1), bool), "fixed_mask": np.zeros((1, 9), bool)}
+        body = {"a_prop": np.zeros((1, JOINT_ACT_DIM)), "C": np.zeros((1, 1, JOINT_ACT_DIM)), "c": np.zeros((1, 1)),
+                "row_mask": np.zeros((1, 1), bool), "fixed_mask": np.zeros((1, JOINT_ACT_DIM), bool)}
         payload = wire.encode("shield_req", body, run_id=run_id, sender="cli/bench", seq=0)
         deadline = time.monotonic() + self.cfg.start_timeout_s
         while True:
@@ -371,19 +352,15 @@ class SystemBench:
     def services_phase(self) -> dict:
         """Router + shield process + echo child: shield round trips, parameter
         broadcasts, then one actor process with the shield vs with a local QP."""
-        from common import keys
-        from common.transport import Bus
-        from deploy.supervisor import ServiceSpec, free_tcp_port, router_spec, service_specs
-
         batches = self.requests()
         local = self._local_qp(batches)
         port = free_tcp_port()
         connect = [f"tcp/127.0.0.1:{port}"]
         cfg, path = self.train_config(1, connect, "svc", unpaced=True)
         run = Path(cfg.run_dir)
-        echo = ServiceSpec("echo", [sys.executable, "-m", "common.system_bench", "echo", "--config", str(path)])
+        echo = ServiceSpec("echo", [sys.executable, "-m", "sage.bench.system", "echo", "--config", str(path)])
         self.log(f"bench: shield process, round trips for batches {list(batches)}; parameter broadcasts")
-        sup = self.supervise([router_spec(port), *service_specs(path, roles=("shield",)), echo], run)
+        self.supervise([router_spec(port), *service_specs(path, roles=("shield",)), echo], run)
         bus = Bus.open(connect=connect, mode="client")
         try:
             self._wait_shield(bus, cfg.run_id, self.check)
@@ -394,7 +371,7 @@ class SystemBench:
             meter = StepMeter(cfg.run_id)
             bus.subscribe(keys.status_all(cfg.run_id), meter.on_status)
             feeder = _Repeater(learner.publish_params, 0.5)  # actors wait for parameters
-            actor = {"local_qp": [sys.executable, "-m", "common.system_bench", "local-actor",
+            actor = {"local_qp": [sys.executable, "-m", "sage.bench.system", "local-actor",
                                   "--config", str(path), "--actor-id", "0"],
                      "shield_service": service_specs(path, roles=("actor",), actor_ids=[0])[0].argv}
             rates = {}
@@ -415,7 +392,6 @@ class SystemBench:
         cfg_in, _ = self.train_config(1, None, "svc-in")
         bus = Bus.open(inprocess=True)
         stop = threading.Event()
-        from services.shield.service import ShieldService
 
         th = threading.Thread(target=ShieldService(cfg_in, bus, 0, stop=stop).run, daemon=True)
         th.start()
@@ -442,10 +418,6 @@ class SystemBench:
     def system_phase(self) -> dict:
         """Router, shield, learner and actors; actors are added between the
         measurements (1, then 2, ...), processes first, then threads."""
-        from common import keys
-        from common.transport import Bus
-        from deploy.supervisor import free_tcp_port, router_spec, service_specs
-
         counts = sorted(set(self.cfg.actor_counts))
         port = free_tcp_port()
         connect = [f"tcp/127.0.0.1:{port}"]
@@ -476,50 +448,30 @@ class SystemBench:
     def _inprocess_system(self, counts: list[int]) -> tuple[dict[int, float], dict[int, list[str]]]:
         """Steps/s with the services as threads; a failed learner thread is
         reported (it cannot be restarted), a failed actor or shield aborts."""
-        from common import keys
-        from common.transport import Bus
-        from services.actor.service import ActorService
-        from services.learner.service import LearnerService
-        from services.shield.service import ShieldService
-
         cfg, _ = self.train_config(counts[-1], None, "sys-in")
         bus = Bus.open(inprocess=True)
-        stop = threading.Event()
-        errors: list[tuple[str, BaseException]] = []
-        threads: list[threading.Thread] = []
-
-        def launch(svc):
-            def body():
-                try:
-                    svc.run()
-                except BaseException as exc:  # noqa: BLE001 - surfaced by alive()
-                    errors.append((svc.sender, exc))
-            t = threading.Thread(target=body, name=svc.sender, daemon=True)
-            t.start()
-            threads.append(t)
+        group = ServiceThreads(threading.Event())
 
         def alive():
-            fatal = [(who, exc) for who, exc in errors if who != "learner/0"]
+            fatal = group.failure(ignore=("learner/0",))
             if fatal:
-                raise RuntimeError(f"in-process {fatal[0][0]} failed: {fatal[0][1]!r}")
+                raise RuntimeError(f"in-process {fatal[0]} failed: {fatal[1]!r}")
 
         meter = StepMeter(cfg.run_id)
         bus.subscribe(keys.status_all(cfg.run_id), meter.on_status)
         out, failures, have = {}, {}, 0
         try:
-            launch(ShieldService(cfg, bus, 0, stop=stop))
-            launch(LearnerService(cfg, bus, 0, stop=stop))
+            group.start(ShieldService(cfg, bus, 0, stop=group.stop), stop_all_on_error=False)
+            group.start(LearnerService(cfg, bus, 0, stop=group.stop), stop_all_on_error=False)
             for n in counts:
                 self.log(f"bench: whole system in-process, {n} actor thread(s)")
                 for i in range(have, n):
-                    launch(ActorService(cfg, bus, i, stop=stop))
+                    group.start(ActorService(cfg, bus, i, stop=group.stop), stop_all_on_error=False)
                 have = n
                 out[n] = meter.measure(n, self.cfg.warmup_s, self.cfg.measure_s, self.cfg.start_timeout_s, alive)
-                failures[n] = [f"{who}: {exc!r}"[:300] for who, exc in errors]
+                failures[n] = [f"{who}: {exc!r}"[:300] for who, exc in group.errors]
         finally:
-            stop.set()
-            for t in threads:
-                t.join(15)
+            group.join(15)
             bus.close()
         return out, failures
 
@@ -626,12 +578,10 @@ def summary_table(r: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "local-actor":
-        from services.base import run_entry
-
-        return run_entry("actor", lambda *a: _local_qp_actor_class()(*a), argv[1:])
+        return run_entry("actor", LocalQPActor, argv[1:])
     if argv and argv[0] == "echo":
         return echo_main(argv[1:])
-    print("usage: python -m common.system_bench {local-actor|echo} ... (the benchmark is `sage bench system`)",
+    print("usage: python -m sage.bench.system {local-actor|echo} ... (the benchmark is `sage bench system`)",
           file=sys.stderr)
     return 2
 

@@ -1,0 +1,53 @@
+"""The transport task, apart from its physics (as dm_control separates Task
+from Physics): what a step's snapshot means for the team, i.e. the shared
+reward, success, drop, and termination vs truncation. Pure functions of the
+measured snapshot (``common.env.observations.Snapshot``) and the config.
+
+Reward (weights in ``RewardWeights``), per control step:
+
+    r = w_p ds / max_step_xy - w_h |heading err| - w_s mean((strain / drop_strain)^2)
+        - w_c collision - w_d drop - w_t + w_succ success
+
+where ``ds`` is the route progress of the payload projection this step
+(clipped to [-2, 2] max steps) and ``collision`` is any wall contact.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.env.config import EnvConfig
+from common.env.geometry import wrap
+
+
+@dataclass
+class StepOutcome:
+    """Per-env outcome of one control step, all [K]."""
+
+    reward: np.ndarray
+    success: np.ndarray       # goal pose reached with the payload held
+    drop: np.ndarray          # grasp released: the strain exceeded drop_strain
+    terminated: np.ndarray    # success or drop
+    truncated: np.ndarray     # time limit, not terminated
+    collision: np.ndarray     # any wall contact this step
+    heading_error: np.ndarray # |route tangent - payload yaw| (rad)
+
+
+def step_outcome(snap, s_old: np.ndarray, t: np.ndarray, max_steps: int, goal_xy: np.ndarray,
+                 goal_yaw: np.ndarray, cfg: EnvConfig) -> StepOutcome:
+    w = cfg.reward
+    drop = snap.strain.max(axis=1) > cfg.drop_strain
+    pos_err = np.linalg.norm(snap.pxy - goal_xy, axis=1)
+    yaw_err = np.abs(wrap(snap.pyaw - goal_yaw))
+    success = (pos_err < cfg.goal_pos_tol) & (yaw_err < cfg.goal_yaw_tol) & ~drop
+    terminated = drop | success
+    truncated = (t >= max_steps) & ~terminated
+    collision = snap.contact
+    heading_err = np.abs(wrap(snap.route_yaw - snap.pyaw))
+    ds = np.clip(snap.s - s_old, -2 * cfg.max_step_xy, 2 * cfg.max_step_xy)
+    reward = (w.progress * ds / cfg.max_step_xy - w.heading * heading_err
+              - w.strain * np.mean((snap.strain / cfg.drop_strain) ** 2, axis=1)
+              - w.collision * collision - w.drop * drop - w.time + w.success * success)
+    return StepOutcome(reward=reward, success=success, drop=drop, terminated=terminated, truncated=truncated,
+                       collision=collision, heading_error=heading_err)

@@ -1,0 +1,156 @@
+"""Torch twin of the hard oblique trees (common/policy/tree.py): the learner's
+``HardObliqueTree`` per carrier and the ``TeamPolicy`` of three of them, with
+straight-through gates (Eq. st_gate). Kept apart from the numpy module so that
+actor processes, which only need the numpy forward, never import torch.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+
+import numpy as np
+import torch
+from torch import nn
+
+from common.policy.tree import (FORMAT_VERSION, PARAM_NAMES, InvalidParams, ParamsSpec, TreeConfig, TreeOutput,
+                                 validate_params)
+
+
+
+class HardObliqueTree(nn.Module):
+    """One carrier's hard oblique tree; hard forward, straight-through backward."""
+
+    def __init__(self, obs_dim: int, act_dim: int = 3, depth: int | None = None, config: TreeConfig | None = None):
+        super().__init__()
+        cfg = config or TreeConfig()
+        depth = cfg.depth if depth is None else depth
+        if depth < 1 or obs_dim < 1 or act_dim < 1:
+            raise ValueError(f"tree: need depth, obs_dim, act_dim >= 1, got {depth}, {obs_dim}, {act_dim}")
+        self.obs_dim, self.act_dim, self.depth = obs_dim, act_dim, depth
+        self.n_internal, self.n_leaves = 2**depth - 1, 2**depth
+        W = torch.randn(self.n_internal, obs_dim)
+        self.W = nn.Parameter(W / W.norm(dim=1, keepdim=True))  # random unit split vectors
+        self.b = nn.Parameter(cfg.b_init_scale * torch.randn(self.n_internal))
+        self.K = nn.Parameter(cfg.k_init_scale / math.sqrt(obs_dim) * torch.randn(self.n_leaves, act_dim, obs_dim))
+        self.beta = nn.Parameter(torch.zeros(self.n_leaves, act_dim))
+        self.log_std = nn.Parameter(torch.full((act_dim,), float(cfg.init_log_std)))
+        self.register_buffer("c_a", torch.full((act_dim,), float(cfg.action_center)))
+        self.register_buffer("s_a", torch.full((act_dim,), float(cfg.action_half_range)))
+
+    def gate_margins(self, obs):
+        """w_k.o - b_k for every internal node, float64 [B, n_internal] (see dtype policy)."""
+        W = self.W.double()
+        w = W / torch.linalg.vector_norm(W, dim=1, keepdim=True)
+        return obs.double() @ w.T - self.b.double()
+
+    def leaf_actions(self, obs):
+        """c_a + s_a tanh(K_l o + beta_l) for every leaf, [B, n_leaves, act_dim] float64."""
+        u = torch.einsum("lao,bo->bla", self.K.double(), obs.double()) + self.beta.double()
+        return self.c_a.double() + self.s_a.double() * torch.tanh(u)
+
+    def route(self, margins):
+        """Hard routing (Eq. hard_gate): leaf [B], nodes [B,D], sides [B,D] (True = right)."""
+        hard = margins > 0
+        node = torch.zeros(len(margins), dtype=torch.int64, device=margins.device)
+        nodes, sides = [], []
+        for _ in range(self.depth):
+            side = hard.gather(1, node[:, None])[:, 0]
+            nodes.append(node)
+            sides.append(side)
+            node = 2 * node + 1 + side.long()
+        return node - self.n_internal, torch.stack(nodes, 1), torch.stack(sides, 1)
+
+    def st_leaf_weights(self, margins, tau):
+        """Path products of g^ST / 1 - g^ST, [B, n_leaves] float64; forward value = hard one-hot."""
+        p = torch.sigmoid(margins / tau)
+        g_st = (margins > 0).to(p.dtype) + (p - p.detach())  # Eq. (st_gate), forward exactly hard
+        weight = torch.ones_like(margins[:, :1])
+        for level in range(self.depth):
+            g = g_st[:, 2**level - 1 : 2**(level + 1) - 1]  # nodes of this level, left to right
+            weight = torch.stack([weight * (1.0 - g), weight * g], dim=2).reshape(len(margins), -1)
+        return weight
+
+    def forward(self, obs, tau: float = 1.0) -> TreeOutput:
+        if obs.ndim != 2 or obs.shape[1] != self.obs_dim:
+            raise ValueError(f"tree: obs must be [B,{self.obs_dim}], got {tuple(obs.shape)}")
+        if not float(tau) > 0:
+            raise ValueError(f"tree: tau must be > 0, got {tau}")
+        margins = self.gate_margins(obs)
+        leaf, nodes, sides = self.route(margins.detach())
+        weight = self.st_leaf_weights(margins, tau)
+        action = (weight[:, :, None] * self.leaf_actions(obs)).sum(1)  # Eq. (hard_tree_policy)
+        action = action.to(self.K.dtype)
+        return TreeOutput(action, leaf, nodes, sides)
+
+    def export_arrays(self) -> dict[str, np.ndarray]:
+        return {name: getattr(self, name).detach().cpu().numpy().astype(np.float32) for name in PARAM_NAMES}
+
+class TeamPolicy(nn.Module):
+    """N independent hard trees (no parameter sharing); stacked action [B, N*act_dim]."""
+
+    def __init__(self, n_agents: int, obs_dim: int, act_dim: int = 3, depth: int | None = None, config: TreeConfig | None = None):
+        super().__init__()
+        if n_agents < 1:
+            raise ValueError(f"team: n_agents must be >= 1, got {n_agents}")
+        self.n_agents, self.obs_dim, self.act_dim = n_agents, obs_dim, act_dim
+        self.trees = nn.ModuleList(HardObliqueTree(obs_dim, act_dim, depth, config) for _ in range(n_agents))
+        self.depth = self.trees[0].depth
+
+    @property
+    def log_std(self):
+        """Stacked proposal log-std [N*act_dim] (differentiable)."""
+        return torch.cat([tree.log_std for tree in self.trees])
+
+    def forward(self, obs, tau: float = 1.0) -> TreeOutput:
+        if obs.ndim != 3 or obs.shape[1] != self.n_agents:
+            raise ValueError(f"team: obs must be [B,{self.n_agents},obs_dim], got {tuple(obs.shape)}")
+        outs = [tree(obs[:, i], tau) for i, tree in enumerate(self.trees)]
+        return TreeOutput(
+            torch.cat([o.action for o in outs], dim=1),
+            torch.stack([o.leaf for o in outs], dim=1),
+            torch.stack([o.nodes for o in outs], dim=1),
+            torch.stack([o.sides for o in outs], dim=1),
+        )
+
+    def spec(self) -> ParamsSpec:
+        return ParamsSpec(self.n_agents, self.obs_dim, self.act_dim, self.depth)
+
+    def export_params(self) -> dict[str, np.ndarray]:
+        out: dict[str, np.ndarray] = {"format_version": np.asarray(FORMAT_VERSION, dtype=np.float32)}
+        for i, tree in enumerate(self.trees):
+            out.update({f"carrier_{i}/{k}": v for k, v in tree.export_arrays().items()})
+        return out
+
+    def load_params(self, params: Mapping[str, np.ndarray]) -> None:
+        spec = validate_params(params)
+        if spec != self.spec():
+            raise InvalidParams(f"params have shape spec {spec}, this team is {self.spec()}")
+        with torch.no_grad():
+            for i, tree in enumerate(self.trees):
+                for name in PARAM_NAMES:
+                    target = getattr(tree, name)
+                    target.copy_(torch.as_tensor(np.asarray(params[f"carrier_{i}/{name}"]), dtype=target.dtype))
+
+    @classmethod
+    def from_params(cls, params: Mapping[str, np.ndarray]) -> "TeamPolicy":
+        spec = validate_params(params)
+        team = cls(spec.n_agents, spec.obs_dim, spec.act_dim, spec.depth)
+        team.load_params(params)
+        return team
+
+
+def policy_params_from_checkpoint(ckpt: Mapping) -> dict[str, np.ndarray]:
+    """The flat numpy tree parameters (``TeamPolicy.export_params``) of a learner
+    checkpoint, whatever its method: the TeamPolicy state dict is
+    ``ckpt["method"]["policy"]`` (keys ``trees.{i}.W`` ...), and the shapes in it
+    give the team size, observation size, action size and depth. The one path
+    from a checkpoint to the parameters an actor, ``sage eval`` or a bundle runs."""
+    state = ckpt.get("method", {}).get("policy") if isinstance(ckpt, Mapping) else None
+    if not isinstance(state, Mapping) or "trees.0.W" not in state:
+        raise ValueError("checkpoint holds no TeamPolicy state ('method'/'policy'/'trees.0.W')")
+    n_agents = 1 + max(int(k.split(".")[1]) for k in state if k.startswith("trees."))
+    W, K = state["trees.0.W"], state["trees.0.K"]
+    depth = int(round(math.log2(W.shape[0] + 1)))
+    policy = TeamPolicy(n_agents, int(W.shape[1]), act_dim=int(K.shape[1]), depth=depth)
+    policy.load_state_dict(state)
+    return policy.export_params()

@@ -1,0 +1,51 @@
+"""``SafetyRows``: one control step's safety constraints for B joint actions,
+the one value the env produces and the proposal step (SAIL), the exact QP,
+the shield service, evaluation and recording accept.
+
+    C a >= c   on the rows where row_mask is True          (Eq. qpshield)
+    a[fixed_mask] = the measured human action              (exogenous block)
+
+Shapes: C [B, M, d], c [B, M], row_mask [B, M] bool, fixed_mask [B, d] bool,
+d = ``common.spec.JOINT_ACT_DIM``. Arrays are held, not copied.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class SafetyRows:
+    C: np.ndarray
+    c: np.ndarray
+    row_mask: np.ndarray
+    fixed_mask: np.ndarray
+
+    FIELDS = ("C", "c", "row_mask", "fixed_mask")
+
+    @classmethod
+    def of(cls, step: Mapping) -> "SafetyRows":
+        """The rows of an env ``reset``/``step`` output, a chunk step or a wire body."""
+        return cls(step["C"], step["c"], step["row_mask"], step["fixed_mask"])
+
+    def as_dict(self) -> dict[str, np.ndarray]:
+        return {k: getattr(self, k) for k in self.FIELDS}
+
+    @property
+    def batch(self) -> int:
+        return int(np.shape(self.C)[0])
+
+    def select(self, idx) -> "SafetyRows":
+        return SafetyRows(*(np.asarray(getattr(self, k))[idx] for k in self.FIELDS))
+
+    @staticmethod
+    def concat(parts: list["SafetyRows"]) -> "SafetyRows":
+        return SafetyRows(*(np.concatenate([np.asarray(getattr(p, k)) for p in parts]) for k in SafetyRows.FIELDS))
+
+    def residual(self, a: np.ndarray) -> np.ndarray:
+        """c - C a per row [B, M] (positive = violated), -inf on masked-out rows."""
+        r = np.asarray(self.c, np.float64) - np.einsum("bmd,bd->bm", np.asarray(self.C, np.float64),
+                                                       np.asarray(a, np.float64))
+        return np.where(np.asarray(self.row_mask, bool), r, -np.inf)

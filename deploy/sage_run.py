@@ -1,0 +1,110 @@
+"""A SAGE run as supervised processes: the local Zenoh router (unless the
+config names one), then the members of ``services.launcher.run_members``, each
+its documented entry point (``services.launcher.entry_argv``), under
+``deploy.supervisor.Supervisor``. The status line is the services' heartbeats
+(``common.status.StatusBoard``); when the learner reaches its budget a
+``control`` stop goes to every service of the run, remote actors included.
+
+    sage up --actors 3 --updates 50                      # fresh run, local router
+    sage up --config runs/<id>/config.json               # a saved run config
+    sage train --mode supervised ...                     # the same, from sage train
+    sage up --config RUN.json --roles actor --actor-ids 4-7 --connect tcp/HOST:7447   # actors on another host
+"""
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+from typing import Sequence
+
+from common.rundir import RunDir
+from common.status import StatusBoard
+from deploy.supervisor import ServiceSpec, Supervisor, SupervisorConfig, free_tcp_port
+from services.config import TrainConfig
+from services.launcher import ROLES, entry_argv, run_members
+
+# Prometheus port convention (deploy/prometheus.yml): base+0 learner, base+1 shield, base+10+i actor i
+METRICS_OFFSETS = {"learner": 0, "shield": 1, "actor_base": 10}
+
+
+def default_actor_count() -> int:
+    """One actor per core, leaving one core for the learner and shield (at least 1)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:
+        cores = os.cpu_count() or 1
+    return max(1, cores - 1)
+
+
+def parse_ids(text: str) -> list[int]:
+    """``"0-3,7"`` -> ``[0, 1, 2, 3, 7]``."""
+    out: list[int] = []
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        lo, _, hi = part.partition("-")
+        if not lo.isdigit() or (hi and not hi.isdigit()):
+            raise ValueError(f"bad id range {part!r} (expected e.g. 0-3,7)")
+        out += list(range(int(lo), int(hi or lo) + 1))
+    if not out or len(set(out)) != len(out):
+        raise ValueError(f"bad id list {text!r}: empty or repeated ids")
+    return out
+
+
+def service_specs(config_path: str | Path, roles: Sequence[str] = ROLES, actor_ids: Sequence[int] = (0,),
+                  python: str = sys.executable) -> list[ServiceSpec]:
+    """The run's members as supervised services; the learner's exit 0 ends the run
+    (it checkpoints on SIGTERM, so it is stopped in the first wave)."""
+    return [ServiceSpec(m.name, entry_argv(m, config_path, python), ends_run=m.role == "learner")
+            for m in run_members(actor_ids, roles)]
+
+
+def router_spec(port: int, python: str = sys.executable, host: str = "127.0.0.1") -> ServiceSpec:
+    return ServiceSpec("router", [python, "-m", "deploy.router", "--listen", f"tcp/{host}:{port}"],
+                       stop_wave=1, ready_tcp=(host, port))
+
+
+def run_supervised(config_path: str | Path, *, actors: int | None = None, roles: Sequence[str] = ROLES,
+                   actor_ids: Sequence[int] | None = None, supervisor: SupervisorConfig | None = None,
+                   install_signals: bool = True, out=None) -> int:
+    """Run the services of the run config at ``config_path`` as supervised
+    processes until the learner's budget is reached, a signal arrives, or a
+    service exhausts its restart budget. Returns the exit code (0 = finished).
+
+    ``actors`` overrides the config's actor count (the learner waits for one
+    chunk per actor per update). Without ``transport.connect`` in the config a
+    local router is started on a free 127.0.0.1 port. The config the children
+    read is written to ``<run_dir>/supervised_config.json``.
+    """
+    cfg = TrainConfig.load(config_path)
+    if actors is not None:
+        cfg.actors = int(actors)
+    cfg.mode = "supervised"
+    cfg.actor.exit_on_unhealthy = True  # an actor cut off from the shield exits; we restart it
+    cfg.validate()
+    ids = list(actor_ids) if actor_ids is not None else list(range(cfg.actors))
+    run = RunDir(cfg.run_dir)
+    specs: list[ServiceSpec] = []
+    if not cfg.transport.connect:
+        port = free_tcp_port()
+        specs.append(router_spec(port))
+        cfg.transport.connect = [f"tcp/127.0.0.1:{port}"]
+        # client mode: everything goes through the router. Peers with gossip
+        # off (common/transport.py) attached to one router do not hear each other.
+        cfg.transport.mode = "client"
+    elif cfg.transport.mode != "client":
+        print(f"supervisor: warning: transport.mode is {cfg.transport.mode!r}; services attached to a router "
+              "should use \"client\" (deploy/README.md)", file=out or sys.stderr)
+    child_config = cfg.save(run.supervised_config)
+    specs += service_specs(child_config, roles, ids)
+    sup = Supervisor(specs, run.root, supervisor, out=out)
+    board = StatusBoard(cfg.run_id, stale_after_s=max(5.0, 5 * cfg.status_period_s))
+    print(f"supervisor: run {cfg.run_id}, {len(specs)} processes ({', '.join(s.name for s in specs)}), "
+          f"router {cfg.transport.connect[0]}, run dir {run.root}", file=sup.out, flush=True)
+
+    def open_status():
+        return board.subscribe(cfg.transport.connect)
+
+    def on_finish(status):
+        if status is not None:
+            status.stop_run()  # remote actors of this run stop too
+
+    return sup.run(open_status, on_finish, install_signals=install_signals)
