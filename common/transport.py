@@ -14,6 +14,7 @@ import json
 import logging
 import queue
 import threading
+import time
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
@@ -122,8 +123,6 @@ class Bus:
     # ------------------------------------------------------------- query
     def serve(self, key: str) -> "queue.Queue[Request]":
         """Declare a queryable; received queries land in the returned queue."""
-        import time
-
         q: queue.Queue[Request] = queue.Queue()
 
         def _cb(query: zenoh.Query) -> None:

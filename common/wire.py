@@ -77,11 +77,18 @@ class Arr:
     """Array field: dtype category and shape spec.
 
     ``shape`` entries are ints (fixed size), strings (symbols that must take
-    the same value in every field of one message), or None (free).
+    the same value in every field of one message), or None (free). ``send``
+    is the dtype (an ``ALLOWED_DTYPES`` name) our own senders use; a decoder
+    accepts any dtype of the category.
     """
 
     category: str  # "float" | "int" | "bool"
     shape: tuple
+    send: str = ""
+
+    @property
+    def send_dtype(self) -> np.dtype:
+        return ALLOWED_DTYPES[self.send or {"float": "f8", "int": "i8", "bool": "b1"}[self.category]]
 
 
 @dataclass(frozen=True)
@@ -114,8 +121,9 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         "incarnation": Scalar("str"),        # learner incarnation that issued those params
         "env_steps": Scalar("int"),          # actor's cumulative env steps (all K envs)
         "version_t": Arr("int", ("T",)),     # parameter version used at each step
-        "obs": Arr("float", ("T", "K", N_CARRIERS, "O")),
-        "state": Arr("float", ("T", "K", "S")),
+        # observations and states travel as float32 (what the trees and the critic read)
+        "obs": Arr("float", ("T", "K", N_CARRIERS, "O"), send="f4"),
+        "state": Arr("float", ("T", "K", "S"), send="f4"),
         "C": Arr("float", ("T", "K", "M", JOINT_ACT_DIM)),
         "c": Arr("float", ("T", "K", "M")),
         "row_mask": Arr("bool", ("T", "K", "M")),
@@ -129,10 +137,10 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         "reward": Arr("float", ("T", "K")),
         "terminated": Arr("bool", ("T", "K")),
         "truncated": Arr("bool", ("T", "K")),
-        "final_state": Arr("float", ("T", "K", "S")),
-        "final_obs": Arr("float", ("T", "K", N_CARRIERS, "O")),
-        "last_state": Arr("float", ("K", "S")),
-        "last_obs": Arr("float", ("K", N_CARRIERS, "O")),
+        "final_state": Arr("float", ("T", "K", "S"), send="f4"),
+        "final_obs": Arr("float", ("T", "K", N_CARRIERS, "O"), send="f4"),
+        "last_state": Arr("float", ("K", "S"), send="f4"),
+        "last_obs": Arr("float", ("K", N_CARRIERS, "O"), send="f4"),
         "episodes": EpisodeList(),
     },
     # Learner -> actors, on sage/<run>/params (re-broadcast periodically).
@@ -182,6 +190,11 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         "target": Scalar("str"),             # "*" or "<role>" or "<role>/<id>"
     },
 }
+
+# The per-step fields of a trajectory chunk (leading [T, K]), in schema order:
+# what an actor stacks per step and the learner's batch layout (docs/interfaces.md).
+TRAJ_STEP_FIELDS: tuple[str, ...] = tuple(
+    k for k, spec in SCHEMAS["traj"].items() if isinstance(spec, Arr) and spec.shape[:2] == ("T", "K"))
 
 STATUS_STATES = ("starting", "waiting", "running", "unhealthy", "stopping", "stopped", "done")
 CONTROL_COMMANDS = ("stop",)

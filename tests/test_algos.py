@@ -9,10 +9,9 @@ import torch
 
 from common.algos import AlgoConfig, make_method
 from common.algos.registry import METHODS
-from common.policy.sail import sail_center_implicit
 from common.algos.synthetic import BanditTask, collect
-from common.policy.sail import SailConfig, sail_project
 from common.algos.talo import individual_gradient, talo_gap, unflatten_like
+from common.policy.sail import SailConfig, sail_center_implicit, sail_project
 
 OBS = 6
 

@@ -3,7 +3,8 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from common.audit.config import AuditConfig
 from common.audit.leaf_stats import association, audit_markdown, leaf_audit, nmi, progress_bins, purity

@@ -9,10 +9,10 @@ from common.audit.figures import draw_trace, representative_steps
 from common.audit.leaf_stats import leaf_audit
 from common.audit.recording import Recording, record_episodes
 from common.audit.synthetic import random_team_params
-from sage.cli import main
 from common.env.config import EnvConfig
 from common.env.observations import OBS_DIM
 from common.policy.tree import team_forward_np
+from sage.cli import main
 
 
 @pytest.fixture(scope="module")

@@ -15,8 +15,16 @@ import numpy as np
 import pytest
 
 from common import keys, wire
-from sage.bench.system import (QUICK, StepMeter, SystemBench, SystemBenchConfig, config_from_args, quantiles_ms,
-                                 register, summary_table)
+from sage.bench.system import (
+    QUICK,
+    StepMeter,
+    SystemBench,
+    SystemBenchConfig,
+    config_from_args,
+    quantiles_ms,
+    register,
+    summary_table,
+)
 
 
 def status_msg(run_id: str, role: str, member: str, env_steps: int) -> bytes:

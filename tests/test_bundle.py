@@ -17,9 +17,8 @@ from common.audit.recording import record_episodes
 from common.audit.synthetic import random_team_params
 from common.env.config import EnvConfig
 from common.env.observations import OBS_DIM, OBS_FEATURE_NAMES
-from common.shield.qp import solve_cbf_qp
 from common.policy.tree import team_forward_np
-
+from common.shield.qp import solve_cbf_qp
 
 # A fixed bundle location: re-exporting unchanged QP sources keeps numba's JIT cache in
 # <bundle>/sage_qp/__pycache__ valid, so only the first run ever compiles the bundle's kernels.

@@ -12,8 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from common.env.config import EnvConfig
-from common.env.layout import FACING, GRASP_LOCAL
 from common.env.geometry import WallSet
+from common.env.layout import FACING, GRASP_LOCAL
 from common.env.scenarios import FAMILIES, SCENARIO_TITLES, SCENARIOS, Route, formation_footprint
 
 
@@ -304,8 +304,8 @@ def test_metrics_aggregate():
 def test_cli_registers_and_bench_runs(tmp_path, capsys):
     import json
 
-    from sage.cli import main
     from sage.bench.env import bench_env
+    from sage.cli import main
 
     res = bench_env("narrow_gate", num_envs=2, steps=5)
     assert {"env_steps_per_s", "raw_physics_env_steps_per_s", "ratio"} <= set(res) and res["ratio"] > 0

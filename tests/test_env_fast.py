@@ -13,8 +13,8 @@ from hypothesis import strategies as st
 from common.env import batch_env, geometry, physics, scenarios
 from common.env import safety as S
 from common.env.config import EnvConfig
-from common.env.layout import GRASP_LOCAL, PAIR_REST, PAYLOAD_POINTS_LOCAL
 from common.env.geometry import WallSet
+from common.env.layout import GRASP_LOCAL, PAIR_REST, PAYLOAD_POINTS_LOCAL
 from common.env.scenarios import SCENARIOS, Route
 
 HYP = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])

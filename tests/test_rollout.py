@@ -8,10 +8,10 @@ import torch
 
 from common.policy.proposal import proposal_log_prob_np
 from common.policy.rollout import propose
-from common.safety_rows import SafetyRows
 from common.policy.sail import sail_project_np
 from common.policy.tree import team_forward_np
 from common.policy.tree_torch import TeamPolicy
+from common.safety_rows import SafetyRows
 
 B, N, OBS, M, D = 32, 3, 12, 34, 9
 

@@ -13,8 +13,15 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from common.env.safety import (
-    KIND_CARRIER_WALL, KIND_FORMATION, KIND_PAYLOAD_WALL, PAIRS, SafetyConfig,
-    SafetyGeometry, barrier_values, build_rows, predict,
+    KIND_CARRIER_WALL,
+    KIND_FORMATION,
+    KIND_PAYLOAD_WALL,
+    PAIRS,
+    SafetyConfig,
+    SafetyGeometry,
+    barrier_values,
+    build_rows,
+    predict,
 )
 
 HYP = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])

@@ -10,10 +10,10 @@ import pytest
 from prometheus_client import CollectorRegistry
 
 sys.path.insert(0, str(Path(__file__).parent))
-from common.safety_rows import SafetyRows  # noqa: E402
 from services_fakes import FakeBatchEnv, FakeMethod, fake_propose, fake_solve  # noqa: E402
 
 from common import keys, wire  # noqa: E402
+from common.safety_rows import SafetyRows  # noqa: E402
 from common.transport import Bus  # noqa: E402
 from services.actor.service import EXIT_UNHEALTHY, ActorService  # noqa: E402
 from services.config import ActorConfig, ShieldConfig, TrainConfig  # noqa: E402

@@ -9,7 +9,12 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from common.algos.talo import (
-    cosine, individual_gradient, talo_direction, talo_gap, talo_project, unflatten_like,
+    cosine,
+    individual_gradient,
+    talo_direction,
+    talo_gap,
+    talo_project,
+    unflatten_like,
 )
 
 F64 = torch.float64  # finite differences need double precision

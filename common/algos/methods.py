@@ -32,23 +32,21 @@ from torch import Tensor, nn
 from common.algos.config import AlgoConfig, kappa_schedule, tau_schedule
 from common.algos.critic import TeamCritic, ValueNormalizer, compute_gae, next_values
 from common.algos.registry import method_spec
+from common.algos.talo import cosine, flat_grad, talo_direction, talo_gap, unflatten_like
 from common.policy.proposal import proposal_entropy, proposal_log_prob
 from common.policy.sail import SailConfig, sail_center_implicit, sail_project
-from common.algos.talo import cosine, flat_grad, talo_direction, talo_gap, unflatten_like
 from common.policy.tree import TreeConfig
 from common.policy.tree_torch import TeamPolicy
 from common.spec import CARRIER_ACT_DIM, N_CARRIERS
+from common.wire import SCHEMAS
 
 STATE_FORMAT_VERSION = 1
 
 
-# Batch arrays the learner reads, with their shapes after the [T, K] axes.
-# "final_obs" is needed only where some step is truncated.
-_REQUIRED = {
-    "obs": ("N", "O"), "C": ("M", "D"), "c": ("M",), "row_mask": ("M",),
-    "fixed_mask": ("D",), "a_st": ("D",), "a_prop": ("D",), "a_exec": ("D",),
-    "logp": ("N",), "reward": (), "terminated": (), "truncated": (),
-}
+# Batch arrays the learner always reads; their shapes are the chunk schema's
+# (common/wire.py SCHEMAS["traj"]). "final_obs" is needed only where some step is truncated.
+_REQUIRED = ("obs", "C", "c", "row_mask", "fixed_mask", "a_st", "a_prop", "a_exec", "logp",
+             "reward", "terminated", "truncated")
 
 
 @dataclass
@@ -220,10 +218,9 @@ class Method:
         if T is None:
             raise ValueError(f"batch['reward'] must be [T,K], got {np.shape(batch['reward'])}")
         M = np.shape(batch["C"])[2] if np.ndim(batch["C"]) == 4 else -1
-        dims = {"T": T, "K": K, "N": self.n_agents, "O": self.obs_dim, "M": M,
-                "D": self.n_agents * CARRIER_ACT_DIM}
-        for key, tail in _REQUIRED.items():
-            want = (T, K) + tuple(dims[a] for a in tail)
+        dims = {"T": T, "K": K, "O": self.obs_dim, "M": M}
+        for key in _REQUIRED:
+            want = tuple(dims.get(a, a) for a in SCHEMAS["traj"][key].shape)
             if np.shape(batch[key]) != want:
                 raise ValueError(f"batch[{key!r}] has shape {np.shape(batch[key])}, expected {want}")
         if np.shape(batch["last_obs"]) != (K, self.n_agents, self.obs_dim):

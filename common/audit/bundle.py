@@ -21,7 +21,8 @@ import numpy as np
 
 from common.audit import bundle_runtime
 from common.audit.config import AuditConfig
-from common.audit.params import split_carriers, feature_names as resolve_names
+from common.audit.params import feature_names as resolve_names
+from common.audit.params import split_carriers
 from common.audit.tree_view import describe_tree
 
 README = """# SAGE deployment bundle

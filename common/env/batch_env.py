@@ -11,27 +11,26 @@ from __future__ import annotations
 import numpy as np
 
 from common.env.config import EnvConfig
-from common.env.layout import (CARRIER_RADIUS, CARRY_HEIGHT, FACING, GRASP_LOCAL, PAIR_REST,
-                               PAYLOAD_POINTS_LOCAL)
 from common.env.geometry import WallSet, from_frame
+from common.env.layout import CARRIER_RADIUS, CARRY_HEIGHT, FACING, GRASP_LOCAL, PAIR_REST, PAYLOAD_POINTS_LOCAL
 from common.env.observations import OBS_DIM, STATE_DIM, global_state, observations, snapshot
 from common.env.physics import TransportPhysics
 from common.env.scenarios import SCENARIOS, Route
 from common.env.scripted import ScriptedHuman, scripted_actions
 from common.env.task import step_outcome
-from common.spec import JOINT_ACT_DIM, N_CARRIERS
+from common.spec import CARRIER_ACT_DIM, JOINT_ACT_DIM, N_CARRIERS
 
 
 def safety_config(cfg: EnvConfig):
-    from common.env.safety import SafetyConfig
+    from common.env import safety  # resolved at call time: tests swap in a fake safety module
 
-    return SafetyConfig(alpha=cfg.alpha, max_rows=cfg.max_rows, carrier_radius=CARRIER_RADIUS + 0.05,
-                        max_step_xy=cfg.max_step_xy, max_step_yaw=cfg.max_step_yaw, grasp_tol=cfg.grasp_tol)
+    return safety.SafetyConfig(alpha=cfg.alpha, max_rows=cfg.max_rows, carrier_radius=CARRIER_RADIUS + 0.05,
+                               max_step_xy=cfg.max_step_xy, max_step_yaw=cfg.max_step_yaw, grasp_tol=cfg.grasp_tol)
 
 
 class BatchEnv:
     n_agents = N_CARRIERS
-    act_dim = 3
+    act_dim = CARRIER_ACT_DIM
     obs_dim = OBS_DIM
     state_dim = STATE_DIM
 

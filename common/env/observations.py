@@ -11,8 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.env.config import EnvConfig
-from common.env.layout import CARRIER_RADIUS, CARRY_HEIGHT, FACING, GRASP_LOCAL, PAYLOAD_POINTS_LOCAL
 from common.env.geometry import WallSet, from_frame, to_frame, wrap
+from common.env.layout import CARRIER_RADIUS, CARRY_HEIGHT, FACING, GRASP_LOCAL, PAYLOAD_POINTS_LOCAL
 from common.env.physics import TransportPhysics, quat_to_yaw_tilt
 from common.spec import N_CARRIERS
 

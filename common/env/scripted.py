@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from common.env.config import EnvConfig
-from common.env.layout import FACING, GRASP_LOCAL
 from common.env.geometry import from_frame, to_frame, wrap
+from common.env.layout import FACING, GRASP_LOCAL
 from common.env.observations import Snapshot
 from common.spec import JOINT_ACT_DIM, N_CARRIERS
 

@@ -36,6 +36,12 @@ from __future__ import annotations
 import numpy as np
 
 from common.env import safety
+from common.env.batch_env import BatchEnv, safety_config
+from common.env.config import EnvConfig
+from common.env.layout import FACING, GRASP_LOCAL, PAIR_REST, PAYLOAD_POINTS_LOCAL
+from common.env.physics import quat_to_yaw_tilt
+from common.env.scenarios import SCENARIOS, Route
+from common.shield.qp import STATUS_OPTIMAL, solve_cbf_qp
 
 KIND_NAMES = {safety.KIND_CARRIER_WALL: "carrier_wall", safety.KIND_PAYLOAD_WALL: "payload_wall",
               safety.KIND_FORMATION: "formation_lo", safety.KIND_FORMATION + 1: "formation_hi"}
@@ -90,9 +96,6 @@ class _MujocoWorld:
     """The real BatchEnv; the true next geometry is read from the physics right after it steps."""
 
     def __init__(self, scenario: str, num_envs: int, seed: int):
-        from common.env.batch_env import BatchEnv
-        from common.env.config import EnvConfig
-
         self.env = BatchEnv(EnvConfig(scenario=scenario), num_envs=num_envs, seed=seed)
         self.walls = self.env.walls_array
         self.cfg = self.env.safety_cfg
@@ -108,9 +111,6 @@ class _MujocoWorld:
         self.out = self.env.reset()
 
     def _read(self) -> safety.SafetyGeometry:
-        from common.env.layout import GRASP_LOCAL, PAIR_REST, PAYLOAD_POINTS_LOCAL
-        from common.env.physics import quat_to_yaw_tilt
-
         phys = self.env.phys
         cp = phys.carrier_pose
         yaw, _ = quat_to_yaw_tilt(phys.payload_quat)
@@ -134,11 +134,6 @@ class _PredictorWorld:
     """The one-step predictor as the world (the rows' own model)."""
 
     def __init__(self, scenario: str, num_envs: int, seed: int):
-        from common.env.batch_env import safety_config
-        from common.env.config import EnvConfig
-        from common.env.layout import FACING, GRASP_LOCAL, PAIR_REST, PAYLOAD_POINTS_LOCAL
-        from common.env.scenarios import SCENARIOS, Route
-
         spec = SCENARIOS[scenario]
         route = Route(spec.route)
         self.walls = spec.walls_array()
@@ -181,8 +176,6 @@ def measure_honesty(scenario: str, n_steps: int, seed: int, num_envs: int = 8, w
                     drift_gain: float = 0.8, noise: float = 0.5, drift_steps: int = 20,
                     tol: float = 1e-9, backend: str = "default") -> dict:
     """Roll ``num_envs`` envs for ``n_steps`` shielded random steps; see the module docstring."""
-    from common.shield.qp import STATUS_OPTIMAL, solve_cbf_qp
-
     if world not in ("mujoco", "predictor"):
         raise ValueError(f"world must be 'mujoco' or 'predictor', got {world!r}")
     if n_steps < 1 or num_envs < 1:

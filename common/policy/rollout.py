@@ -22,10 +22,10 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from common.safety_rows import SafetyRows
 from common.policy.proposal import ProposalConfig, proposal_sample_np
 from common.policy.sail import SailConfig, sail_project_np
 from common.policy.tree import team_forward_np, team_log_std
+from common.safety_rows import SafetyRows
 
 MODES = ("train", "deploy")
 

@@ -12,9 +12,15 @@ import numpy as np
 import torch
 from torch import nn
 
-from common.policy.tree import (FORMAT_VERSION, PARAM_NAMES, InvalidParams, ParamsSpec, TreeConfig, TreeOutput,
-                                 validate_params)
-
+from common.policy.tree import (
+    FORMAT_VERSION,
+    PARAM_NAMES,
+    InvalidParams,
+    ParamsSpec,
+    TreeConfig,
+    TreeOutput,
+    validate_params,
+)
 
 
 class HardObliqueTree(nn.Module):

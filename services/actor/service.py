@@ -18,7 +18,7 @@ from collections import deque
 
 import numpy as np
 
-from common import keys
+from common import keys, wire
 from common.algos.registry import method_spec
 from common.env.batch_env import BatchEnv
 from common.metrics_prom import Window
@@ -28,12 +28,7 @@ from services.base import RateMeter, Service
 
 EXIT_UNHEALTHY = 3
 
-# per-step fields of a chunk (docs/wire.md, traj), in the order they are stacked
-STEP_FIELDS = ("obs", "state", "C", "c", "row_mask", "fixed_mask", "a_st", "a_bar", "a_prop",
-               "a_exec", "logp", "leaf", "reward", "terminated", "truncated", "final_state", "final_obs")
-_DTYPES = {"row_mask": bool, "fixed_mask": bool, "terminated": bool, "truncated": bool, "leaf": np.int64,
-           "obs": np.float32, "state": np.float32, "final_state": np.float32, "final_obs": np.float32, "logp": np.float64,
-           "reward": np.float64}
+TRAJ = wire.SCHEMAS["traj"]   # the chunk layout (docs/wire.md): fields, shapes, the dtypes we send
 
 
 class ActorUnhealthy(RuntimeError):
@@ -169,7 +164,7 @@ class ActorService(Service):
 
     def _rollout(self, env) -> None:
         out = env.reset()
-        buf: dict[str, list] = {k: [] for k in STEP_FIELDS}
+        buf: dict[str, list] = {k: [] for k in wire.TRAJ_STEP_FIELDS}
         versions: list[int] = []
         episodes: list[dict] = []
         chunk_incarnation = None
@@ -181,7 +176,7 @@ class ActorService(Service):
             p = self.params
             if versions and p["incarnation"] != chunk_incarnation:
                 # learner restarted: its resumed policy starts a fresh chunk
-                buf = {k: [] for k in STEP_FIELDS}
+                buf = {k: [] for k in wire.TRAJ_STEP_FIELDS}
                 versions, episodes = [], []
             chunk_incarnation = p["incarnation"]
             kappa = float(p["settings"].get("kappa", 0.0)) if self.uses_sail else 0.0
@@ -202,7 +197,7 @@ class ActorService(Service):
                     "logp": prop["logp"], "leaf": prop["leaf"], "reward": nxt["reward"],
                     "terminated": nxt["terminated"], "truncated": nxt["truncated"],
                     "final_state": nxt["final_state"], "final_obs": nxt["final_obs"]}
-            for k in STEP_FIELDS:  # copy: envs may reuse their output buffers
+            for k in wire.TRAJ_STEP_FIELDS:  # copy: envs may reuse their output buffers
                 buf[k].append(np.array(step[k], copy=True))
             versions.append(p["version"])
             K = a_exec.shape[0]
@@ -223,7 +218,7 @@ class ActorService(Service):
             out = nxt
             if len(versions) == T:
                 self._publish_chunk(buf, versions, episodes, out)
-                buf = {k: [] for k in STEP_FIELDS}
+                buf = {k: [] for k in wire.TRAJ_STEP_FIELDS}
                 versions, episodes = [], []
             self.publish_status()
 
@@ -242,14 +237,14 @@ class ActorService(Service):
             self._adopt_params()
 
     def _publish_chunk(self, buf, versions, episodes, last) -> None:
-        body = {k: np.stack([np.asarray(x) for x in buf[k]]).astype(_DTYPES.get(k, np.float64), copy=False)
-                for k in STEP_FIELDS}
+        body = {k: np.stack([np.asarray(x) for x in buf[k]]).astype(TRAJ[k].send_dtype, copy=False)
+                for k in wire.TRAJ_STEP_FIELDS}
         body.update({
             "actor_id": self.actor_id, "version": int(min(versions)),
             "incarnation": self.params["incarnation"], "env_steps": self.env_steps,
             "version_t": np.asarray(versions, dtype=np.int64),
-            "last_state": np.asarray(last["state"], dtype=np.float32),
-            "last_obs": np.asarray(last["obs"], dtype=np.float32),
+            "last_state": np.asarray(last["state"], dtype=TRAJ["last_state"].send_dtype),
+            "last_obs": np.asarray(last["obs"], dtype=TRAJ["last_obs"].send_dtype),
             "episodes": episodes,
         })
         self.send(keys.traj(self.cfg.run_id, self.actor_id), "traj", body)

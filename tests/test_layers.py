@@ -1,0 +1,39 @@
+"""The layering of docs/architecture.md, as import-linter contracts in
+pyproject.toml: app (sage) > deploy > services > common, and the layers
+inside common, services and deploy. The second test plants a forbidden import
+in a copy of the tree and checks that the contracts catch it."""
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+LINT = [sys.executable, "-c", "import sys; from importlinter.cli import lint_imports_command; "
+                              "sys.exit(lint_imports_command())"]
+
+
+def _lint(root: Path) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONPATH=str(root))
+    return subprocess.run(LINT + ["--config", str(root / "pyproject.toml"), "--no-cache"], cwd=root, env=env,
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_import_contracts_hold():
+    proc = _lint(ROOT)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "0 broken" in proc.stdout
+
+
+def test_a_forbidden_import_breaks_a_contract(tmp_path):
+    for pkg in ("common", "services", "deploy", "sage"):
+        shutil.copytree(ROOT / pkg, tmp_path / pkg, ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copy(ROOT / "pyproject.toml", tmp_path / "pyproject.toml")
+    wire = tmp_path / "common" / "wire.py"
+    wire.write_text(wire.read_text() + "\nfrom services.config import TrainConfig  # noqa: E402,F401\n")
+    proc = _lint(tmp_path)
+    assert proc.returncode != 0
+    assert "app > deploy > services > common BROKEN" in proc.stdout
+    assert "common.wire -> services.config" in proc.stdout
