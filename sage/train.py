@@ -72,7 +72,7 @@ def config_from_args(args) -> TrainConfig:
     cfg.max_lag, cfg.seed, cfg.mode, cfg.eval_episodes = args.max_lag, args.seed, args.mode, args.eval_episodes
     cfg.ports.inprocess = args.metrics_port
     if args.human_slot is not None:
-        cfg.env = {**cfg.env, "human_slot": args.human_slot}
+        cfg.env = dataclasses.replace(cfg.env, human_slot=args.human_slot)
     for item in args.set:
         apply_override(cfg, item)
     if args.run_id:
@@ -96,7 +96,10 @@ def apply_override(cfg: TrainConfig, item: str) -> None:
     except json.JSONDecodeError:
         value = raw
     if section in ("env", "algo"):
-        setattr(cfg, section, {**getattr(cfg, section), key: value})
+        try:
+            cfg.override(section, key, value)
+        except (ValueError, TypeError) as exc:
+            raise SystemExit(f"--set {path}={raw}: {exc}") from None
         return
     if section == "train":
         plain = {f.name for f in dataclasses.fields(cfg)

@@ -15,7 +15,6 @@ import secrets
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 from common.algos.config import AlgoConfig
 from common.algos.registry import METHODS
@@ -105,8 +104,17 @@ class TrainConfig:
     ports: PortsConfig = field(default_factory=PortsConfig)
     shield: ShieldConfig = field(default_factory=ShieldConfig)
     actor: ActorConfig = field(default_factory=ActorConfig)
-    env: dict[str, Any] = field(default_factory=dict)    # common.env.EnvConfig overrides
-    algo: dict[str, Any] = field(default_factory=dict)   # common.algos.AlgoConfig overrides
+    # The environment's and the learner's own configs. A map given here (constructor,
+    # JSON) is a set of field overrides on their defaults. The run's scenario and seed
+    # are the single sources: they win over env.scenario and algo.seed.
+    env: EnvConfig = field(default_factory=EnvConfig)
+    algo: AlgoConfig = field(default_factory=AlgoConfig)
+
+    def __post_init__(self):
+        if isinstance(self.env, dict):
+            self.env = build_dataclass(EnvConfig, {**self.env, "scenario": self.scenario})
+        if isinstance(self.algo, dict):
+            self.algo = build_dataclass(AlgoConfig, {**self.algo, "seed": self.seed})
 
     # -------------------------------------------------------------- helpers
     def validate(self) -> "TrainConfig":
@@ -135,23 +143,28 @@ class TrainConfig:
         return self.chunks_per_update or self.actors
 
     def env_config(self) -> EnvConfig:
-        overrides = dict(self.env)
-        overrides["scenario"] = self.scenario  # the run's scenario wins over a stale copy
-        return build_dataclass(EnvConfig, overrides)
+        return dataclasses.replace(self.env, scenario=self.scenario)
 
     def algo_config(self) -> AlgoConfig:
-        overrides = dict(self.algo)
-        overrides.setdefault("seed", self.seed)
-        return build_dataclass(AlgoConfig, overrides)
+        return dataclasses.replace(self.algo, seed=self.seed)
+
+    def override(self, section: str, key: str, value) -> None:
+        """Set ``env.KEY`` or ``algo.KEY`` (validated by the owner dataclass)."""
+        owner = {"env": EnvConfig, "algo": AlgoConfig}[section]
+        if (section, key) in (("env", "scenario"), ("algo", "seed")):
+            raise ValueError(f"{section}.{key} follows the run's own {key!r} field; set that instead")
+        values = dataclasses.asdict(getattr(self, section))
+        if key not in values:
+            raise ValueError(f"unknown {owner.__name__} field {key!r}")
+        setattr(self, section, build_dataclass(owner, {**values, key: value}))
 
     def resolve(self) -> "TrainConfig":
-        """Fill run id / run dir and expand env/algo overrides to full values."""
+        """Fill run id / run dir; env and algo follow the run's scenario and seed."""
         if not self.run_id:
             self.run_id = time.strftime("%Y%m%d-%H%M%S") + "-" + secrets.token_hex(3)
         if not self.run_dir:
             self.run_dir = str(Path("runs") / self.run_id)
-        for attr, make in (("env", self.env_config), ("algo", self.algo_config)):
-            setattr(self, attr, json.loads(json.dumps(dataclasses.asdict(make()), default=_json_default)))
+        self.env, self.algo = self.env_config(), self.algo_config()
         return self.validate()
 
     def to_json(self) -> str:
