@@ -27,9 +27,17 @@ def test_eval_reads_newest_checkpoint(tiny_run, capsys):
 
 
 def test_eval_records_traces_for_the_audit(tiny_run, tmp_path, capsys):
+    from common.audit.recording import Recording
+
     out = tmp_path / "rec.npz"
-    assert main(["eval", str(tiny_run), "--episodes", "1", "--record", str(out), "--json"]) == 0
-    assert out.exists()
+    assert main(["eval", str(tiny_run), "--episodes", "3", "--record", str(out), "--json"]) == 0
+    rec = json.loads(capsys.readouterr().out)
+    # the recording holds the very episodes that were scored (one deployment loop, run once)
+    recording = Recording.load(out)
+    metrics = recording.meta["episode_metrics"]
+    assert len(metrics) == 3 and rec["episodes"] == 3
+    assert sum(m["success"] for m in metrics) / 3 == pytest.approx(rec["success_rate"])
+    assert recording.n_steps == sum(m["steps"] for m in metrics)
     assert main(["audit", str(out), "--out", str(tmp_path / "audit")]) == 0
 
 
