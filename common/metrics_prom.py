@@ -58,6 +58,14 @@ class SageMetrics:
                                    buckets=LATENCY_BUCKETS, registry=r)
         self.shield_timeouts = Counter("sage_actor_shield_timeouts_total",
                                        "Shield queries unanswered in time (nothing executed)", _L, registry=r)
+        self.answers_rejected = Counter("sage_actor_shield_answers_rejected_total",
+                                        "Shield answers that failed the actor's own check (never executed)",
+                                        _L + ("reason",), registry=r)
+        self.params_rejected = Counter("sage_actor_params_rejected_total",
+                                       "Parameter messages that failed the tree-shape check (not adopted)",
+                                       _L, registry=r)
+        self.dropped = Counter("sage_queue_dropped_total", "Items dropped by a full bounded queue",
+                               _L + ("queue",), registry=r)
         self.healthy = Gauge("sage_actor_healthy", "1 healthy, 0 unhealthy", _L, registry=r)
         self.version = Gauge("sage_param_version", "Parameter version held/published", _L, registry=r)
         self.episodes = Counter("sage_episodes_total", "Finished episodes", _L, registry=r)
@@ -69,11 +77,17 @@ class SageMetrics:
                               _L + ("outcome",), registry=r)
 
 
-def serve_metrics(port: int | None, registry: CollectorRegistry):
-    """Expose ``registry`` on ``port``; 0/None disables. Returns the server or None."""
+DEFAULT_BIND = "127.0.0.1"   # metrics are not for the whole network unless asked (PortsConfig.bind)
+
+
+def serve_metrics(port: int | None, registry: CollectorRegistry, addr: str | None = DEFAULT_BIND):
+    """Expose ``registry`` on ``addr:port``; 0/None port disables. Returns the
+    server or None. ``addr`` defaults to loopback (prometheus_client's own
+    default is 0.0.0.0): pass ``PortsConfig.bind`` ("0.0.0.0", "::" or one
+    interface's address) to let a Prometheus on another host scrape it."""
     if not port:
         return None
-    server, _thread = start_http_server(int(port), registry=registry)
+    server, _thread = start_http_server(int(port), addr=addr or DEFAULT_BIND, registry=registry)
     return server
 
 

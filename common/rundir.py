@@ -3,6 +3,8 @@
     config.json             resolved TrainConfig, written by ``sage train`` / ``sage up``
     supervised_config.json  the config the supervised child processes read
     metrics.jsonl, .csv     one row per learner update
+    metrics_discarded.jsonl rows of updates a learner restart rolled back (after its checkpoint)
+    learner_version.json    the highest parameter version a learner published (versions never repeat)
     checkpoints/            atomic learner checkpoints (common/checkpoint.py)
     summary.json            final summary and deployment evaluation
     status.json             the supervisor's live status snapshot
@@ -32,6 +34,8 @@ class RunDir:
     supervised_config = property(lambda self: self.root / "supervised_config.json")
     metrics_jsonl = property(lambda self: self.root / "metrics.jsonl")
     metrics_csv = property(lambda self: self.root / "metrics.csv")
+    metrics_discarded = property(lambda self: self.root / "metrics_discarded.jsonl")
+    learner_version = property(lambda self: self.root / "learner_version.json")
     checkpoints = property(lambda self: self.root / "checkpoints")
     summary = property(lambda self: self.root / "summary.json")
     status = property(lambda self: self.root / "status.json")

@@ -9,7 +9,7 @@ import time
 from collections.abc import Sequence
 
 from common import keys, wire
-from common.transport import Bus
+from common.transport import Bus, TlsFiles
 
 
 def status_line(fresh: dict[str, dict], latest: dict[str, dict] | None = None) -> str:
@@ -71,9 +71,10 @@ class StatusBoard:
         bus.subscribe(keys.status_all(self.run_id), self.on_message)
         return self
 
-    def subscribe(self, connect: Sequence[str], mode: str = "client") -> "StatusBoard":
+    def subscribe(self, connect: Sequence[str], mode: str = "client", tls: TlsFiles | None = None) -> "StatusBoard":
+        """Its own session to the router; with ``tls``, as the ``supervisor`` role."""
         self._own_bus = True
-        return self.attach(Bus.open(connect=list(connect), mode=mode))
+        return self.attach(Bus.open(connect=list(connect), mode=mode, tls=tls, role="supervisor"))
 
     def stop_run(self) -> None:
         """Publish a ``control`` stop to every service of the run (also remote ones)."""

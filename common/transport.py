@@ -7,6 +7,13 @@ In-process mode (``Bus.open(inprocess=True)``) is a real Zenoh peer session
 with no network: multicast and gossip scouting off, no listen and no connect
 endpoints. All services then run as threads on that one session, and Zenoh
 delivers publications and queries locally.
+
+TLS (deploy/README.md, "Secure deployment"): with ``tls_root_ca``,
+``tls_cert`` and ``tls_key`` set, the session's ``transport/link/tls`` is
+filled in (the CA that the router's certificate must chain to, and this
+process's own client certificate for mutual TLS) and endpoints are written
+``tls/<host>:<port>``. Empty fields (the default) leave the config exactly as
+before: plain TCP, or no network at all in-process.
 """
 from __future__ import annotations
 
@@ -16,29 +23,93 @@ import queue
 import threading
 import time
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from pathlib import Path
+from typing import Callable, Iterator, Sequence
 
 import zenoh
 
 log = logging.getLogger(__name__)
 
 
+@dataclass(frozen=True)
+class TlsFiles:
+    """PEM paths of one process's TLS identity. ``{role}`` in a path is
+    replaced by the role (one run config, one certificate per role:
+    ``certs/{role}.pem``)."""
+
+    root_ca: str = ""
+    cert: str = ""
+    key: str = ""
+    verify_name: bool = True   # check the router's certificate name against the endpoint's host
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.root_ca or self.cert or self.key)
+
+    def for_role(self, role: str | None) -> "TlsFiles":
+        if role is None:
+            if "{role}" in self.cert + self.key:
+                raise ValueError("TLS paths contain {role} but no role was given")
+            return self
+        return TlsFiles(self.root_ca.replace("{role}", role), self.cert.replace("{role}", role),
+                        self.key.replace("{role}", role), self.verify_name)
+
+    @classmethod
+    def from_transport(cls, transport) -> "TlsFiles | None":
+        """From a ``services.config.TransportConfig`` (or anything with the
+        ``tls_*`` attributes); None when TLS is off."""
+        t = cls(getattr(transport, "tls_root_ca", "") or "", getattr(transport, "tls_cert", "") or "",
+                getattr(transport, "tls_key", "") or "", bool(getattr(transport, "tls_verify_name", True)))
+        return t if t.enabled else None
+
+
+def tls_link_config(tls: TlsFiles, *, listen: bool = False) -> dict:
+    """The ``transport/link/tls`` section for a client/peer with ``tls``.
+
+    Fails early (FileNotFoundError) on a missing file: Zenoh would otherwise
+    only log it and retry the link forever."""
+    if not (tls.root_ca and tls.cert and tls.key):
+        raise ValueError("TLS needs all three of root CA, certificate and private key "
+                         f"(got root_ca={tls.root_ca!r}, cert={tls.cert!r}, key={tls.key!r})")
+    for what, path in (("root CA", tls.root_ca), ("certificate", tls.cert), ("private key", tls.key)):
+        if not Path(path).is_file():
+            raise FileNotFoundError(f"TLS {what} {path} not found")
+    # enable_mtls is needed on the connecting side as well: without it Zenoh
+    # does not present connect_certificate and the router's handshake fails
+    # with "received fatal alert: CertificateRequired" (zenoh 1.10).
+    d = {"root_ca_certificate": tls.root_ca, "enable_mtls": True,
+         "connect_certificate": tls.cert, "connect_private_key": tls.key,
+         "verify_name_on_connect": bool(tls.verify_name)}
+    if listen:  # a peer that accepts TLS links requires client certificates too
+        d.update(listen_certificate=tls.cert, listen_private_key=tls.key)
+    return d
+
+
 def zenoh_config(*, connect: Sequence[str] = (), listen: Sequence[str] = (),
-                 mode: str = "peer", multicast_scouting: bool = False) -> zenoh.Config:
+                 mode: str = "peer", multicast_scouting: bool = False,
+                 tls: TlsFiles | None = None) -> zenoh.Config:
     """Zenoh config with explicit endpoints only.
 
     Multicast scouting is off by default so a process never attaches to a
     stranger's network by accident; multi-host runs list a router in
-    ``connect`` (docs/wire.md, deploy/).
+    ``connect`` (docs/wire.md, deploy/). ``tls`` (see ``TlsFiles``) adds the
+    TLS link settings; with it every endpoint must be a ``tls/`` one, so a
+    typo can never silently fall back to plain TCP.
     """
     if mode not in ("peer", "client", "router"):
         raise ValueError(f"zenoh mode {mode!r}")
+    if tls is not None and tls.enabled:
+        plain = [e for e in (*connect, *listen) if not str(e).startswith("tls/")]
+        if plain:
+            raise ValueError(f"TLS is configured but endpoints {plain} are not tls/<host>:<port>")
     cfg = zenoh.Config()
     cfg.insert_json5("mode", json.dumps(mode))
     cfg.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
     cfg.insert_json5("scouting/gossip/enabled", json.dumps(bool(multicast_scouting)))
     cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
     cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    if tls is not None and tls.enabled:
+        cfg.insert_json5("transport/link/tls", json.dumps(tls_link_config(tls, listen=bool(listen))))
     return cfg
 
 
@@ -82,8 +153,12 @@ class Request:
 class Bus:
     """A Zenoh session with the four operations the services need."""
 
-    def __init__(self, session: zenoh.Session):
+    def __init__(self, session: zenoh.Session, declare_publishers: bool = True):
         self._session = session
+        # Declared publishers are Zenoh's fast path; behind a router with access
+        # control (TLS deployments) zenoh 1.10 delivers only the first put of a
+        # declared publisher (measured: 1 of 10), so those sessions put directly.
+        self._declare_publishers = declare_publishers
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._entities: list = []
         self._lock = threading.Lock()
@@ -91,15 +166,33 @@ class Bus:
 
     @classmethod
     def open(cls, *, connect: Sequence[str] = (), listen: Sequence[str] = (),
-             mode: str = "peer", inprocess: bool = False) -> "Bus":
+             mode: str = "peer", inprocess: bool = False,
+             tls: TlsFiles | None = None, role: str | None = None) -> "Bus":
+        """``tls``: this process's certificate files (``role`` fills a
+        ``{role}`` placeholder in their paths); ignored in-process."""
         if inprocess:
-            connect, listen = (), ()
-        return cls(zenoh.open(zenoh_config(connect=connect, listen=listen, mode=mode)))
+            connect, listen, tls = (), (), None
+        if tls is not None:
+            tls = tls.for_role(role) if tls.enabled else None
+        return cls(zenoh.open(zenoh_config(connect=connect, listen=listen, mode=mode, tls=tls)),
+                   declare_publishers=tls is None)
+
+    @classmethod
+    def from_transport(cls, transport, *, role: str | None = None, mode: str | None = None,
+                       inprocess: bool = False) -> "Bus":
+        """``Bus.open`` from a ``services.config.TransportConfig`` (endpoints,
+        mode and the ``tls_*`` fields); ``mode`` overrides the config's."""
+        return cls.open(connect=list(transport.connect), listen=list(transport.listen),
+                        mode=mode or transport.mode, inprocess=inprocess,
+                        tls=TlsFiles.from_transport(transport), role=role)
 
     # ------------------------------------------------------------- pub/sub
     def publish(self, key: str, payload: bytes) -> None:
         with self._lock:
             if self._closed:
+                return
+            if not self._declare_publishers:
+                self._session.put(key, payload)
                 return
             pub = self._publishers.get(key)
             if pub is None:
@@ -121,13 +214,22 @@ class Bus:
             self._entities.append(self._session.declare_subscriber(key, _cb))
 
     # ------------------------------------------------------------- query
-    def serve(self, key: str) -> "queue.Queue[Request]":
-        """Declare a queryable; received queries land in the returned queue."""
-        q: queue.Queue[Request] = queue.Queue()
+    def serve(self, key: str, maxsize: int = 0,
+              on_full: Callable[[], None] | None = None) -> "queue.Queue[Request]":
+        """Declare a queryable; received queries land in the returned queue. With
+        ``maxsize`` the queue is bounded: a query that finds it full is answered at
+        once with ``reply_err(b"overloaded: ...")`` and ``on_full()`` counts it."""
+        q: queue.Queue[Request] = queue.Queue(maxsize=maxsize)
 
         def _cb(query: zenoh.Query) -> None:
             payload = query.payload.to_bytes() if query.payload is not None else b""
-            q.put(Request(query, payload, time.perf_counter()))
+            req = Request(query, payload, time.perf_counter())
+            try:
+                q.put_nowait(req)
+            except queue.Full:
+                req.reply_err(b"overloaded: queue full, retry")
+                if on_full is not None:
+                    on_full()
 
         with self._lock:
             self._entities.append(self._session.declare_queryable(key, _cb))
@@ -135,12 +237,20 @@ class Bus:
 
     def request(self, key: str, payload: bytes, timeout: float) -> Reply | None:
         """One get; the first reply, or None when nobody answered in time."""
-        replies = self._session.get(key, payload=payload, timeout=float(timeout))
-        for r in replies:  # iteration ends when the query is finalized or times out
+        return next(self.replies(key, payload, timeout), None)
+
+    def replies(self, key: str, payload: bytes, timeout: float) -> Iterator[Reply]:
+        """One get sent to every queryable on ``key``, every reply as it arrives,
+        so a caller that checks answers takes the first that passes. Zenoh's
+        defaults (best-matching target, replies consolidated by key) would let one
+        bad queryable answering on the same key hide the good one's answer.
+        Ends when the query is finalized or times out."""
+        for r in self._session.get(key, payload=payload, timeout=float(timeout), target=zenoh.QueryTarget.ALL,
+                                   consolidation=zenoh.ConsolidationMode.NONE):
             if r.ok is not None:
-                return Reply(ok=r.ok.payload.to_bytes())
-            return Reply(err=r.err.payload.to_bytes())
-        return None
+                yield Reply(ok=r.ok.payload.to_bytes())
+            else:
+                yield Reply(err=r.err.payload.to_bytes())
 
     def close(self) -> None:
         with self._lock:

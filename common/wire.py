@@ -12,9 +12,18 @@ dtype from ``ALLOWED_DTYPES``. Nothing is ever pickled.
 ``decode`` validates the envelope, then the body against the schema of its
 kind: required fields, Python types, array dtype categories, ranks, fixed
 sizes, leading dimensions that must agree across fields (named symbols such
-as ``T`` and ``K``), and finiteness of every float. Any violation raises
-``WireError(reason, detail)``; the reason codes are the ``REASONS`` tuple and
-are what services count in ``sage_messages_rejected_total{reason=...}``.
+as ``T`` and ``K``), finiteness of every float, value ranges (ids, versions,
+counters, ``seq`` non-negative) and enums (``status.state``,
+``control.command``). Any violation raises ``WireError(reason, detail)``;
+the reason codes are the ``REASONS`` tuple and are what services count in
+``sage_messages_rejected_total{reason=...}``.
+
+Decoding is bounded before it allocates (the ``MAX_*`` limits below): the
+payload size, every msgpack str/bin/ext/array/map length, the number of
+array/map entries of the whole message (counted while unpacking, which stops
+at the limit), the nesting depth, and every array's dimensions (checked before
+any byte size is computed). ``decode`` raises nothing but ``WireError``, for
+any input bytes.
 """
 from __future__ import annotations
 
@@ -45,9 +54,22 @@ _CATEGORY = {"f4": "float", "f8": "float", "i4": "int", "i8": "int", "u1": "int"
 
 MAX_MESSAGE_BYTES = 64 * 1024 * 1024  # one trajectory chunk is ~1 MB; refuse absurd sizes
 MAX_ARRAY_RANK = 6
+# Resource limits (reason "limit"), all checked before the allocation they bound.
+# Valid messages are far inside them: a traj chunk (T=K=32) has ~200 entries,
+# depth 5 (envelope > body > params > array map > shape) and arrays < 2**20.
+MAX_ARRAY_DIM = 2**31 - 1     # each array dimension
+MAX_ARRAY_ELEMENTS = 2**26    # product of an array's non-zero dimensions (zero-size arrays too)
+MAX_CONTAINER_LEN = 2**16     # entries of one msgpack array or map (checked at its header)
+MAX_ITEMS = 2**18             # entries of all arrays and maps of one message together
+MAX_DEPTH = 8                 # nesting of arrays/maps (the parser itself stops at 1024)
+MAX_STR_BYTES = 2**16         # one msgpack str
+MAX_EXT_BYTES = 16            # one msgpack ext (never valid here; a timestamp is <= 12)
+MAX_NAME_LEN = 256            # run id, sender, ids, incarnation, method, map keys, ...
+MAX_TEXT_LEN = 4096           # free text: status.message
+INT64_MIN, INT64_MAX = -2**63, 2**63 - 1  # every int scalar (msgpack also carries up to 2**64-1)
 
 REASONS = (
-    "malformed",       # not msgpack / truncated / trailing bytes / too large
+    "malformed",       # not msgpack / truncated / trailing bytes / invalid utf-8
     "envelope",        # envelope is not a map or lacks/mistypes a header field
     "version",         # schema version differs from SCHEMA_VERSION
     "run_id",          # message belongs to another run
@@ -57,7 +79,10 @@ REASONS = (
     "type",            # wrong Python type (e.g. str where an int is expected)
     "dtype",           # array dtype not allowed or wrong category
     "shape",           # wrong rank, fixed size or inconsistent leading dims
-    "nonfinite",       # NaN or Inf in a float field
+    "nonfinite",       # NaN or Inf in a float field (or in the header time t)
+    "value",           # right type, value out of range or not in its enum (negative version, ...)
+    "limit",           # a size limit (MAX_*): payload, str/bin/array/map length, entries,
+                       # nesting depth, array dimensions, string field length
 )
 
 
@@ -93,8 +118,15 @@ class Arr:
 
 @dataclass(frozen=True)
 class Scalar:
+    """Scalar field. ints are always within int64; ``lo`` raises the lower
+    bound (0 for ids/versions/counters, -1 where -1 means "none"). strs are at
+    most ``max_len`` characters and, with ``choices``, one of them."""
+
     type: str  # "int" | "float" | "str" | "bool"
     optional: bool = False
+    lo: int | None = None
+    choices: tuple[str, ...] = ()
+    max_len: int = MAX_NAME_LEN
 
 
 @dataclass(frozen=True)
@@ -112,14 +144,16 @@ class EpisodeList:
     """List of maps str -> finite number (finished-episode metrics)."""
 
 
+STATUS_STATES = ("starting", "waiting", "running", "unhealthy", "stopping", "stopped", "done")
+CONTROL_COMMANDS = ("stop",)
 
 SCHEMAS: dict[str, dict[str, Any]] = {
     # Actor -> learner, on sage/<run>/traj/<actor_id>. Leading [T, K] = (time, env).
     "traj": {
-        "actor_id": Scalar("int"),
-        "version": Scalar("int"),            # oldest parameter version used in the chunk
+        "actor_id": Scalar("int", lo=0),
+        "version": Scalar("int", lo=0),      # oldest parameter version used in the chunk
         "incarnation": Scalar("str"),        # learner incarnation that issued those params
-        "env_steps": Scalar("int"),          # actor's cumulative env steps (all K envs)
+        "env_steps": Scalar("int", lo=0),    # actor's cumulative env steps (all K envs)
         "version_t": Arr("int", ("T",)),     # parameter version used at each step
         # observations and states travel as float32 (what the trees and the critic read)
         "obs": Arr("float", ("T", "K", N_CARRIERS, "O"), send="f4"),
@@ -132,6 +166,9 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         "a_bar": Arr("float", ("T", "K", JOINT_ACT_DIM)),
         "a_prop": Arr("float", ("T", "K", JOINT_ACT_DIM)),
         "a_exec": Arr("float", ("T", "K", JOINT_ACT_DIM)),
+        # the verified shield answer's QP status per step (0 optimal, 1 infeasible:
+        # minimum-violation action); -1 for an unshielded method's step
+        "shield_status": Arr("int", ("T", "K"), send="i4"),
         "logp": Arr("float", ("T", "K", N_CARRIERS)),
         "leaf": Arr("int", ("T", "K", N_CARRIERS)),
         "reward": Arr("float", ("T", "K")),
@@ -145,7 +182,7 @@ SCHEMAS: dict[str, dict[str, Any]] = {
     },
     # Learner -> actors, on sage/<run>/params (re-broadcast periodically).
     "params": {
-        "version": Scalar("int"),
+        "version": Scalar("int", lo=0),
         "incarnation": Scalar("str"),
         "method": Scalar("str"),
         "params": ArrDict(),
@@ -165,28 +202,28 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         "status": Arr("int", ("B",)),
         "correction_norm": Arr("float", ("B",)),
         "slack": Arr("float", ("B",)),
-        "batch_size": Scalar("int"),         # rows in the micro-batch this request rode in
+        "batch_size": Scalar("int", lo=0),   # rows in the micro-batch this request rode in
         "solve_s": Scalar("float"),          # wall time of that solve_cbf_qp call
     },
     # Heartbeat, every service, on sage/<run>/status/<role>/<id>.
     "status": {
         "role": Scalar("str"),               # shield | actor | learner
         "id": Scalar("str"),
-        "state": Scalar("str"),              # see STATUS_STATES
-        "pid": Scalar("int"),
+        "state": Scalar("str", choices=STATUS_STATES),
+        "pid": Scalar("int", lo=0),
         "uptime_s": Scalar("float"),
-        "version": Scalar("int"),            # newest parameter version held/published; -1 none
-        "env_steps": Scalar("int"),
+        "version": Scalar("int", lo=-1),     # newest parameter version held/published; -1 none
+        "env_steps": Scalar("int", lo=0),
         "env_steps_per_s": Scalar("float"),
-        "updates": Scalar("int"),
+        "updates": Scalar("int", lo=0),
         "success_rate": Scalar("float", optional=True),   # recent episodes; None if none yet
         "shield_p99_s": Scalar("float", optional=True),   # shield: solve; actor: round trip
-        "message": Scalar("str"),
+        "message": Scalar("str", max_len=MAX_TEXT_LEN),
         "extra": FloatDict(),
     },
     # Anyone -> all services on sage/<run>/control.
     "control": {
-        "command": Scalar("str"),            # see CONTROL_COMMANDS
+        "command": Scalar("str", choices=CONTROL_COMMANDS),
         "target": Scalar("str"),             # "*" or "<role>" or "<role>/<id>"
     },
 }
@@ -196,8 +233,6 @@ SCHEMAS: dict[str, dict[str, Any]] = {
 TRAJ_STEP_FIELDS: tuple[str, ...] = tuple(
     k for k, spec in SCHEMAS["traj"].items() if isinstance(spec, Arr) and spec.shape[:2] == ("T", "K"))
 
-STATUS_STATES = ("starting", "waiting", "running", "unhealthy", "stopping", "stopped", "done")
-CONTROL_COMMANDS = ("stop",)
 
 
 # --------------------------------------------------------------------------- encode
@@ -251,21 +286,98 @@ class Message:
     body: dict
 
 
+_HEADER = frozenset({"v", "kind", "run", "sender", "seq", "t", "body"})
+
+
+def _brief(v) -> str:
+    """A short description of an untrusted value for an error detail: never a
+    full repr (a value may be huge, or nested deeper than repr can recurse)."""
+    if v is None or isinstance(v, (bool, int, float)):
+        s = repr(v)
+    elif isinstance(v, (str, bytes)):
+        s = repr(v[:40]) + ("..." if len(v) > 40 else "")
+    elif isinstance(v, list) and len(v) <= MAX_ARRAY_RANK and all(type(x) is int for x in v):
+        s = repr(v)
+    elif isinstance(v, (list, dict)):
+        return f"<{type(v).__name__} of {len(v)}>"
+    else:
+        return f"<{type(v).__name__}>"
+    return s if len(s) <= 80 else s[:77] + "..."
+
+
+class _TooManyItems(Exception):
+    pass
+
+
+def _unpack(payload: bytes):
+    """msgpack.unpackb with every length bounded at its header (max_*_len)
+    and the entries of all arrays and maps counted as they are built: the
+    hooks run on each finished container, so a message of millions of tiny
+    maps stops after MAX_ITEMS of them instead of building them all."""
+    left = MAX_ITEMS
+
+    def count(obj):
+        nonlocal left
+        left -= len(obj) + 1
+        if left < 0:
+            raise _TooManyItems
+        return obj
+
+    try:
+        return msgpack.unpackb(
+            payload, raw=False, strict_map_key=True, use_list=True,
+            object_hook=count, list_hook=count,
+            max_str_len=MAX_STR_BYTES, max_bin_len=MAX_MESSAGE_BYTES, max_ext_len=MAX_EXT_BYTES,
+            max_array_len=MAX_CONTAINER_LEN, max_map_len=MAX_CONTAINER_LEN)
+    except _TooManyItems:
+        raise WireError("limit", f"more than {MAX_ITEMS} array/map entries") from None
+    except msgpack.StackError:
+        raise WireError("limit", "nested deeper than the msgpack parser allows") from None
+    except Exception as exc:  # noqa: BLE001 - truncated, trailing bytes, invalid utf-8, bad ext, ...
+        text = str(exc)[:200]
+        if isinstance(exc, ValueError) and "exceeds max_" in text:  # "N exceeds max_map_len(M)"
+            raise WireError("limit", text) from None
+        raise WireError("malformed", f"{type(exc).__name__}: {text}") from None
+
+
+def _check_depth(env) -> None:
+    """Nesting of arrays/maps <= MAX_DEPTH (a walk over at most MAX_ITEMS entries)."""
+    stack = [(env, 1)]
+    while stack:
+        obj, depth = stack.pop()
+        if depth > MAX_DEPTH:
+            raise WireError("limit", f"nested deeper than {MAX_DEPTH}")
+        for x in (obj.values() if type(obj) is dict else obj):
+            if type(x) is dict or type(x) is list:
+                stack.append((x, depth + 1))
+
+
 def _dec_array(name: str, v) -> np.ndarray:
     if not isinstance(v, dict) or set(v) != {"nd", "shape", "data"}:
         raise WireError("type", f"{name}: expected an array map")
-    dt = ALLOWED_DTYPES.get(v["nd"]) if isinstance(v["nd"], str) else None
+    nd = v["nd"]
+    dt = ALLOWED_DTYPES.get(nd) if isinstance(nd, str) else None
     if dt is None:
-        raise WireError("dtype", f"{name}: dtype {v['nd']!r} not allowed")
+        raise WireError("dtype", f"{name}: dtype {_brief(nd)} not allowed")
     shape = v["shape"]
     if (not isinstance(shape, list) or len(shape) > MAX_ARRAY_RANK
             or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape)):
-        raise WireError("shape", f"{name}: bad shape {shape!r}")
+        raise WireError("shape", f"{name}: bad shape {_brief(shape)}")
+    # Bound the dims before any size is computed. The product of the non-zero
+    # dims counts: numpy refuses a shape whose non-zero dims overflow even for a
+    # zero-size array (shape [0, 2**64-1] raised a plain ValueError here).
+    elements = 1
+    for s in shape:
+        if s > MAX_ARRAY_DIM:
+            raise WireError("limit", f"{name}: dimension {s} > {MAX_ARRAY_DIM}")
+        elements *= max(s, 1)
+    if elements > MAX_ARRAY_ELEMENTS:
+        raise WireError("limit", f"{name}: shape {shape} has more than {MAX_ARRAY_ELEMENTS} elements")
     data = v["data"]
     if not isinstance(data, bytes):
         raise WireError("type", f"{name}: data is not bytes")
     if len(data) != math.prod(shape) * dt.itemsize:
-        raise WireError("shape", f"{name}: {len(data)} bytes for shape {shape} {v['nd']}")
+        raise WireError("shape", f"{name}: {len(data)} bytes for shape {shape} {nd}")
     # copy: frombuffer views are read-only and pin the message buffer
     arr = np.frombuffer(data, dtype=dt).reshape(shape).copy()
     if dt == np.dtype("?") and arr.view(np.uint8).max(initial=0) > 1:
@@ -299,13 +411,36 @@ def _check_number(name: str, v, typ: str, optional: bool):
     raise AssertionError(typ)
 
 
+def _check_scalar(name: str, v, spec: Scalar):
+    """Type (``_check_number``), then range, length and enum of a scalar field."""
+    v = _check_number(name, v, spec.type, spec.optional)
+    if v is None:
+        return None
+    if spec.type == "int":
+        lo = INT64_MIN if spec.lo is None else spec.lo
+        if not lo <= v <= INT64_MAX:
+            raise WireError("value", f"{name}: {v} outside [{lo}, {INT64_MAX}]")
+    elif spec.type == "str":
+        if len(v) > spec.max_len:
+            raise WireError("limit", f"{name}: {len(v)} characters > {spec.max_len}")
+        if spec.choices and v not in spec.choices:
+            raise WireError("value", f"{name}: {_brief(v)} not one of {spec.choices}")
+    return v
+
+
+def _check_key(name: str, k) -> None:
+    if not isinstance(k, str):
+        raise WireError("type", f"{name}: non-str key")
+    if len(k) > MAX_NAME_LEN:
+        raise WireError("limit", f"{name}: key of {len(k)} characters > {MAX_NAME_LEN}")
+
+
 def _check_float_map(name: str, v) -> dict:
     if not isinstance(v, dict):
         raise WireError("type", f"{name}: expected a map")
     out = {}
     for k, x in v.items():
-        if not isinstance(k, str):
-            raise WireError("type", f"{name}: non-str key")
+        _check_key(name, k)
         if isinstance(x, bool):
             out[k] = float(x)
             continue
@@ -319,7 +454,7 @@ def _validate_body(kind: str, body) -> dict:
     schema = SCHEMAS[kind]
     extra = set(body) - set(schema)
     if extra:
-        raise WireError("unknown_field", f"{kind}: {sorted(map(str, extra))}")
+        raise WireError("unknown_field", f"{kind}: {sorted(map(_brief, extra))[:8]}")
     out: dict[str, Any] = {}
     dims: dict[str, tuple[int, str]] = {}  # symbol -> (size, first field that bound it)
     for name, spec in schema.items():
@@ -330,7 +465,7 @@ def _validate_body(kind: str, body) -> dict:
             raise WireError("missing_field", f"{kind}.{name}")
         v = body[name]
         if isinstance(spec, Scalar):
-            out[name] = _check_number(name, v, spec.type, spec.optional)
+            out[name] = _check_scalar(name, v, spec)
         elif isinstance(spec, FloatDict):
             out[name] = _check_float_map(name, v)
         elif isinstance(spec, EpisodeList):
@@ -338,10 +473,11 @@ def _validate_body(kind: str, body) -> dict:
                 raise WireError("type", f"{name}: expected a list")
             out[name] = [_check_float_map(f"{name}[{i}]", e) for i, e in enumerate(v)]
         elif isinstance(spec, ArrDict):
-            if not isinstance(v, dict) or not all(isinstance(k, str) for k in v):
+            if not isinstance(v, dict):
                 raise WireError("type", f"{name}: expected a map of arrays")
             arrs = {}
             for k, x in v.items():
+                _check_key(name, k)
                 a = _dec_array(f"{name}.{k}", x)
                 if a.dtype.kind == "f" and not np.isfinite(a).all():
                     raise WireError("nonfinite", f"{name}.{k}")
@@ -371,37 +507,45 @@ def _validate_body(kind: str, body) -> dict:
 
 
 def decode(payload: bytes, *, run_id: str, expect: str | tuple[str, ...] | None = None) -> Message:
-    """Parse and validate one message; raise ``WireError`` on anything wrong.
+    """Parse and validate one message; raise ``WireError`` on anything wrong
+    (and nothing else, whatever the bytes).
 
     ``run_id`` must match the envelope (runs never cross-talk even if keys are
     misrouted); ``expect`` restricts the accepted kind(s).
     """
     if not isinstance(payload, (bytes, bytearray, memoryview)):
         raise WireError("malformed", "payload is not bytes")
-    if len(payload) > MAX_MESSAGE_BYTES:
-        raise WireError("malformed", f"{len(payload)} bytes > {MAX_MESSAGE_BYTES}")
-    try:
-        env = msgpack.unpackb(bytes(payload), raw=False, strict_map_key=True,
-                              use_list=True, max_bin_len=MAX_MESSAGE_BYTES)
-    except Exception as exc:  # truncated, trailing bytes, invalid utf-8, ...
-        raise WireError("malformed", f"{type(exc).__name__}: {exc}") from None
+    size = payload.nbytes if isinstance(payload, memoryview) else len(payload)
+    if size > MAX_MESSAGE_BYTES:
+        raise WireError("limit", f"{size} bytes > {MAX_MESSAGE_BYTES}")
+    env = _unpack(bytes(payload))
+    if isinstance(env, (dict, list)):
+        _check_depth(env)
     if not isinstance(env, dict):
         raise WireError("envelope", "not a map")
     # version first: a future schema may change every other header field
     if "v" not in env:
         raise WireError("envelope", "no schema version")
-    if env["v"] != SCHEMA_VERSION:
-        raise WireError("version", f"got {env['v']!r}, expected {SCHEMA_VERSION}")
+    if type(env["v"]) is not int or env["v"] != SCHEMA_VERSION:
+        raise WireError("version", f"got {_brief(env['v'])}, expected {SCHEMA_VERSION}")
     for key, typ in (("kind", str), ("run", str), ("sender", str), ("seq", int), ("t", (int, float))):
         if key not in env or not isinstance(env[key], typ) or isinstance(env[key], bool):
             raise WireError("envelope", f"header field {key!r}")
-    if set(env) != {"v", "kind", "run", "sender", "seq", "t", "body"}:
-        raise WireError("envelope", f"header fields {sorted(env)}")
+    if set(env) != _HEADER:
+        raise WireError("envelope", f"header fields: missing {sorted(_HEADER - set(env))}, "
+                                    f"unknown {sorted(map(_brief, set(env) - _HEADER))[:8]}")
+    for key in ("run", "sender"):
+        if len(env[key]) > MAX_NAME_LEN:
+            raise WireError("limit", f"header field {key!r}: {len(env[key])} characters > {MAX_NAME_LEN}")
+    if not 0 <= env["seq"] <= INT64_MAX:
+        raise WireError("value", f"seq {env['seq']} outside [0, {INT64_MAX}]")
+    if not math.isfinite(env["t"]):
+        raise WireError("nonfinite", "header field 't'")
     if env["run"] != run_id:
-        raise WireError("run_id", f"got {env['run']!r}, expected {run_id!r}")
+        raise WireError("run_id", f"got {_brief(env['run'])}, expected {run_id!r}")
     kind = env["kind"]
     if kind not in SCHEMAS:
-        raise WireError("kind", f"unknown kind {kind!r}")
+        raise WireError("kind", f"unknown kind {_brief(kind)}")
     if expect is not None and kind not in ((expect,) if isinstance(expect, str) else expect):
         raise WireError("kind", f"got {kind!r}, expected {expect!r}")
     body = _validate_body(kind, env["body"])

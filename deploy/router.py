@@ -1,12 +1,17 @@
 """A Zenoh router as a plain Python process (no ``zenohd`` binary needed).
 
-    python -m deploy.router                                  # deploy/zenoh-router.json5 (tcp/0.0.0.0:7447)
-    python -m deploy.router --listen tcp/127.0.0.1:17447      # override the listen endpoint
+    python -m deploy.router                                  # deploy/zenoh-router.json5 (tcp/127.0.0.1:7447)
+    python -m deploy.router --listen tcp/10.0.0.1:7447        # override the listen endpoint
+    python -m deploy.router --tls-certs deploy/certs --run-id exp42 --listen tls/10.0.0.1:7447
+                                                             # mutual TLS + per-role access control
 
 Services on this or other hosts list the router in their config
 (``transport.connect = ["tcp/<router-host>:7447"]``) and reach each other
 through it; see deploy/README.md. ``zenohd -c deploy/zenoh-router.json5``
-does the same job where the Zenoh router binary is installed.
+does the same job where the Zenoh router binary is installed. The shipped
+config only listens on loopback; exposing the router to a network without
+``--tls-certs`` lets anyone who reaches it publish and query any key
+(deploy/README.md, "Secure deployment").
 """
 from __future__ import annotations
 
@@ -35,19 +40,42 @@ def router_config(config_path: str | Path = DEFAULT_CONFIG, listen: list[str] | 
     return cfg
 
 
+def secure_router_config(certs_dir: str | Path, listen: list[str] | None = None, run_id: str | None = None):
+    """The router's ``zenoh.Config`` with mutual TLS and the per-role access
+    control of ``deploy/tls.py`` (``certs_dir`` holds ca.pem, router.pem, router.key)."""
+    import zenoh
+
+    from deploy.tls import secure_router_config as build
+
+    body = build(certs_dir, run_id=run_id, listen=listen or ["tls/127.0.0.1:7447"])
+    return zenoh.Config.from_json5(json.dumps(body))
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m deploy.router", description=__doc__.splitlines()[0])
     p.add_argument("--config", default=str(DEFAULT_CONFIG), help="Zenoh JSON5 config (default: %(default)s)")
     p.add_argument("--listen", action="append", default=None,
-                   help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable; replaces the file's list)")
+                   help="endpoint to listen on, e.g. tcp/127.0.0.1:7447 or tls/10.0.0.1:7447 "
+                        "(repeatable; replaces the file's list)")
+    p.add_argument("--tls-certs", default=None, metavar="DIR",
+                   help="secure profile instead of --config: TLS-only, client certificates required, "
+                        "per-role access control (certificates from `python -m deploy.tls certs`)")
+    p.add_argument("--run-id", default=None, help="with --tls-certs: allow only keys of sage/<run-id>/ (default: any run)")
     args = p.parse_args(argv)
     import zenoh
 
+    if args.run_id and not args.tls_certs:
+        p.error("--run-id needs --tls-certs")
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
-    session = zenoh.open(router_config(args.config, args.listen))
-    endpoints = args.listen or "from " + args.config
+    if args.tls_certs:
+        cfg = secure_router_config(args.tls_certs, args.listen, args.run_id)
+    else:
+        cfg = router_config(args.config, args.listen)
+    session = zenoh.open(cfg)
+    endpoints = args.listen or ("tls/127.0.0.1:7447 (mTLS + access control)" if args.tls_certs
+                                else "from " + args.config)
     print(f"zenoh router {session.zid()} listening on {endpoints}", file=sys.stderr, flush=True)
     try:
         while not stop.wait(0.5):

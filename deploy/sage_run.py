@@ -19,6 +19,7 @@ from typing import Sequence
 
 from common.rundir import RunDir
 from common.status import StatusBoard
+from common.transport import TlsFiles
 from deploy.supervisor import ServiceSpec, Supervisor, SupervisorConfig, free_tcp_port
 from services.config import TrainConfig
 from services.launcher import ROLES, entry_argv, run_members
@@ -57,9 +58,16 @@ def service_specs(config_path: str | Path, roles: Sequence[str] = ROLES, actor_i
             for m in run_members(actor_ids, roles)]
 
 
-def router_spec(port: int, python: str = sys.executable, host: str = "127.0.0.1") -> ServiceSpec:
-    return ServiceSpec("router", [python, "-m", "deploy.router", "--listen", f"tcp/{host}:{port}"],
-                       stop_wave=1, ready_tcp=(host, port))
+def router_spec(port: int, python: str = sys.executable, host: str = "127.0.0.1",
+                tls_certs: str | None = None, run_id: str | None = None) -> ServiceSpec:
+    """The local router; with ``tls_certs`` (a ``python -m deploy.tls certs`` folder)
+    TLS-only with client certificates and the per-role access rules of ``run_id``."""
+    if tls_certs:
+        argv = [python, "-m", "deploy.router", "--listen", f"tls/{host}:{port}", "--tls-certs", str(tls_certs),
+                "--run-id", str(run_id)]
+    else:
+        argv = [python, "-m", "deploy.router", "--listen", f"tcp/{host}:{port}"]
+    return ServiceSpec("router", argv, stop_wave=1, ready_tcp=(host, port))
 
 
 def run_supervised(config_path: str | Path, *, actors: int | None = None, roles: Sequence[str] = ROLES,
@@ -83,10 +91,13 @@ def run_supervised(config_path: str | Path, *, actors: int | None = None, roles:
     ids = list(actor_ids) if actor_ids is not None else list(range(cfg.actors))
     run = RunDir(cfg.run_dir)
     specs: list[ServiceSpec] = []
+    tls = TlsFiles.from_transport(cfg.transport)
     if not cfg.transport.connect:
         port = free_tcp_port()
-        specs.append(router_spec(port))
-        cfg.transport.connect = [f"tcp/127.0.0.1:{port}"]
+        # with TLS configured the local router uses the folder of the run's CA (certs/ca.pem)
+        certs = str(Path(tls.root_ca).parent) if tls is not None else None
+        specs.append(router_spec(port, tls_certs=certs, run_id=cfg.run_id))
+        cfg.transport.connect = [f"{'tls' if tls is not None else 'tcp'}/127.0.0.1:{port}"]
         # client mode: everything goes through the router. Peers with gossip
         # off (common/transport.py) attached to one router do not hear each other.
         cfg.transport.mode = "client"
@@ -101,7 +112,7 @@ def run_supervised(config_path: str | Path, *, actors: int | None = None, roles:
           f"router {cfg.transport.connect[0]}, run dir {run.root}", file=sup.out, flush=True)
 
     def open_status():
-        return board.subscribe(cfg.transport.connect)
+        return board.subscribe(cfg.transport.connect, tls=tls)
 
     def on_finish(status):
         if status is not None:

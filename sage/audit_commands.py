@@ -13,10 +13,16 @@ from common.audit.bundle import export_bundle
 from common.audit.config import AuditConfig
 from common.audit.figures import colortrace, draw_trace
 from common.audit.leaf_stats import audit_markdown, leaf_audit
-from common.audit.params import feature_names, load_params_file, split_carriers
+from common.audit.params import BadPolicyParams, feature_names, load_params_file, split_carriers
 from common.audit.recording import Recording
 from common.checkpoint import list_checkpoints
 from common.rundir import RunDir
+from sage.errors import (UsageError, load_error, nonneg_int, output_dir, output_file, positive_int,
+                         user_input)
+from sage.runs import CHECKPOINT_LOAD_ERRORS
+
+# What load_params_file raises on a corrupt or foreign file (torch, numpy or json underneath).
+POLICY_LOAD_ERRORS = CHECKPOINT_LOAD_ERRORS + (KeyError, TypeError, OSError)
 
 _DEFAULTS = AuditConfig()
 
@@ -25,28 +31,28 @@ def register(commands, bench) -> None:
     p = commands.add_parser("tree", help="show or export a carrier's hard tree with named predicates")
     p.add_argument("action", choices=["show", "export"], help="show prints (text/json/dot); export writes --out")
     p.add_argument("policy", help="checkpoint, run directory, flat params .npz/.json, or bundle trees.json")
-    p.add_argument("--carrier", type=int, default=0)
+    p.add_argument("--carrier", type=nonneg_int, default=0)
     p.add_argument("--format", choices=["text", "json", "dot", "png"], default="text")
     p.add_argument("--eval-log", default=None, help="a recording (.npz) whose leaf visits to count")
     p.add_argument("--out", default=None, help="output file (required for png)")
-    p.add_argument("--top-terms", type=int, default=_DEFAULTS.top_terms)
+    p.add_argument("--top-terms", type=positive_int, default=_DEFAULTS.top_terms)
     p.set_defaults(func=_tree)
 
     p = commands.add_parser("trace", help="draw two recorded root-to-leaf decisions (Fig. tree)")
     p.add_argument("recording", help="recording .npz from `sage eval --record`")
     p.add_argument("--out", default="trace.png")
-    p.add_argument("--carrier", type=int, default=0)
+    p.add_argument("--carrier", type=nonneg_int, default=0)
     p.add_argument("--steps", default=None, help="two step indices 'S1,S2' (default: representative pair)")
     p.set_defaults(func=_trace)
 
     p = commands.add_parser("audit", help="leaf-tuple audit: purity, NMI, shuffle z, occupancy figures")
     p.add_argument("recording")
     p.add_argument("--out", default="results/audit")
-    p.add_argument("--bins", type=int, default=_DEFAULTS.progress_bins)
-    p.add_argument("--shuffles", type=int, default=_DEFAULTS.shuffles)
-    p.add_argument("--top-tuples", type=int, default=_DEFAULTS.top_tuples)
-    p.add_argument("--seed", type=int, default=_DEFAULTS.seed)
-    p.add_argument("--episode", type=int, default=None, help="episode for panel (b) (default: furthest)")
+    p.add_argument("--bins", type=nonneg_int, default=_DEFAULTS.progress_bins)
+    p.add_argument("--shuffles", type=nonneg_int, default=_DEFAULTS.shuffles)
+    p.add_argument("--top-tuples", type=positive_int, default=_DEFAULTS.top_tuples)
+    p.add_argument("--seed", type=nonneg_int, default=_DEFAULTS.seed)
+    p.add_argument("--episode", type=nonneg_int, default=None, help="episode for panel (b) (default: furthest)")
     p.set_defaults(func=_audit)
 
     p = commands.add_parser("export-bundle", help="write a numpy-only deployment bundle (trees + CBF-QP)")
@@ -56,16 +62,54 @@ def register(commands, bench) -> None:
 
 
 def load_policy(path: str) -> dict[str, np.ndarray]:
-    """Flat params from a checkpoint file, a run directory holding one, or .npz/.json."""
+    """Flat params from a checkpoint file, a run directory holding one, or .npz/.json.
+
+    A missing path is a ``FileNotFoundError``; a file that does not load or holds
+    no valid trees a ``ValueError`` naming it. In a run directory an unreadable
+    newest checkpoint falls back to the previous one (as ``sage eval`` does)."""
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(2, "No such file or directory", str(p))
+    if not p.is_dir():
+        return _load_policy_file(p)
+    # a run directory: its newest checkpoint (by version); else a folder of params files
+    candidates = list_checkpoints(RunDir(p).checkpoints) or sorted(
+        [*p.glob("*.pt"), *p.glob("*.npz")], key=lambda q: q.stat().st_mtime)
+    if not candidates:
+        raise FileNotFoundError(f"{p}: no checkpoint (*.pt) or params (*.npz) inside")
+    first_error = None
+    for candidate in reversed(candidates):  # newest first
+        try:
+            return _load_policy_file(candidate)
+        except ValueError as exc:
+            first_error = first_error or exc
+    raise first_error
+
+
+def _load_policy_file(p: Path) -> dict[str, np.ndarray]:
+    try:
+        return load_params_file(p)
+    except BadPolicyParams as exc:
+        msg = str(exc)
+        raise BadPolicyParams(msg if str(p) in msg else f"{p}: {msg}") from exc
+    except FileNotFoundError:
+        raise
+    except POLICY_LOAD_ERRORS as exc:
+        raise load_error(p, "policy file (checkpoint, .npz or .json params)", exc) from exc
+
+
+def load_recording(path: str) -> Recording:
+    """``Recording.load``; a missing, corrupt or foreign file is a ``UsageError`` naming it."""
     p = Path(path)
     if p.is_dir():
-        # a run directory: its newest checkpoint (by version); else a folder of params files
-        candidates = list_checkpoints(RunDir(p).checkpoints) or sorted(
-            [*p.glob("*.pt"), *p.glob("*.npz")], key=lambda q: q.stat().st_mtime)
-        if not candidates:
-            raise FileNotFoundError(f"{p}: no checkpoint (*.pt) or params (*.npz) inside")
-        p = candidates[-1]  # newest
-    return load_params_file(p)
+        raise UsageError(f"{p} is a directory; pass a recording .npz from `sage eval --record`")
+    with user_input(str(p)):
+        try:
+            return Recording.load(p)
+        except FileNotFoundError:
+            raise
+        except POLICY_LOAD_ERRORS as exc:
+            raise load_error(p, "recording (.npz from `sage eval --record`)", exc) from exc
 
 
 def leaf_visits(log_path: str, carrier: int, n_leaves: int) -> np.ndarray:
@@ -82,12 +126,25 @@ def leaf_visits(log_path: str, carrier: int, n_leaves: int) -> np.ndarray:
 
 
 def _tree(args: argparse.Namespace) -> int:
-    params = load_policy(args.policy)
-    trees = split_carriers(params)
+    if args.out:
+        output_file(args.out, "--out", figure=args.format == "png")
+    with user_input(args.policy):
+        params = load_policy(args.policy)
+        trees = split_carriers(params)
     if not 0 <= args.carrier < len(trees):
-        raise SystemExit(f"--carrier {args.carrier} out of range 0..{len(trees) - 1}")
+        raise UsageError(f"--carrier {args.carrier} out of range 0..{len(trees) - 1}")
     tree = trees[args.carrier]
-    visits = None if args.eval_log is None else leaf_visits(args.eval_log, args.carrier, tree.n_leaves)
+    visits = None
+    if args.eval_log is not None:
+        if not Path(args.eval_log).is_file():
+            raise UsageError(f"--eval-log {args.eval_log}: no such file")
+        with user_input():   # the messages name the file
+            try:
+                visits = leaf_visits(args.eval_log, args.carrier, tree.n_leaves)
+            except POLICY_LOAD_ERRORS as exc:
+                if isinstance(exc, ValueError) and str(args.eval_log) in str(exc):
+                    raise
+                raise load_error(args.eval_log, "recording (.npz)", exc) from exc
     desc = tree_view.describe_tree(tree, feature_names(tree.obs_dim), AuditConfig(top_terms=args.top_terms), visits)
     title = f"carrier {args.carrier} tree ({Path(args.policy).name})"
     if args.format == "png":
@@ -108,12 +165,21 @@ def _tree(args: argparse.Namespace) -> int:
 
 
 def _trace(args: argparse.Namespace) -> int:
-    rec = Recording.load(args.recording)
     steps = None
     if args.steps:
-        steps = [int(s) for s in args.steps.split(",")]
-        if len(steps) != 2 or not all(0 <= s < rec.n_steps for s in steps):
-            raise SystemExit(f"--steps needs two indices in 0..{rec.n_steps - 1}")
+        try:
+            steps = [int(s) for s in args.steps.split(",")]
+        except ValueError:
+            raise UsageError(f"--steps {args.steps!r}: expected two step indices 'S1,S2'") from None
+        if len(steps) != 2:
+            raise UsageError(f"--steps {args.steps!r}: expected two step indices 'S1,S2'")
+    output_file(args.out, "--out", figure=True)
+    rec = load_recording(args.recording)
+    if steps is not None and not all(0 <= s < rec.n_steps for s in steps):
+        raise UsageError(f"--steps {args.steps}: needs two indices in 0..{rec.n_steps - 1}")
+    n_carriers = rec.leaf.shape[1] if rec.leaf.ndim == 2 else 0
+    if not 0 <= args.carrier < n_carriers:
+        raise UsageError(f"--carrier {args.carrier} out of range 0..{n_carriers - 1}")
     used = draw_trace(rec, args.out, args.carrier, steps)
     print(json.dumps({"figure": args.out, "steps": used,
                       "leaves": [int(rec.leaf[s, args.carrier]) for s in used]}))
@@ -133,14 +199,23 @@ def run_audit(recording, out_dir: str | Path, cfg: AuditConfig = AuditConfig(), 
 
 
 def _audit(args: argparse.Namespace) -> int:
-    cfg = AuditConfig(progress_bins=args.bins, shuffles=args.shuffles, top_tuples=args.top_tuples, seed=args.seed)
-    result = run_audit(Recording.load(args.recording), args.out, cfg, args.episode)
+    with user_input():
+        cfg = AuditConfig(progress_bins=args.bins, shuffles=args.shuffles, top_tuples=args.top_tuples,
+                          seed=args.seed)
+    rec = load_recording(args.recording)
+    if args.episode is not None and args.episode not in set(np.unique(rec.episode).tolist()):
+        raise UsageError(f"--episode {args.episode}: not in the recording ({rec.n_episodes} episode(s))")
+    output_dir(args.out, "--out")
+    result = run_audit(rec, args.out, cfg, args.episode)
     print(audit_markdown(result))
     print(f"wrote {args.out}/leaf_audit.json, leaf_audit.md, colortrace.png")
     return 0
 
 
 def _export_bundle(args: argparse.Namespace) -> int:
-    out = export_bundle(load_policy(args.policy), args.out, meta={"source": str(args.policy)})
+    with user_input(args.policy):
+        params = load_policy(args.policy)
+    output_dir(args.out, "out")
+    out = export_bundle(params, args.out, meta={"source": str(args.policy)})
     print(f"wrote bundle to {out}: {', '.join(sorted(p.name for p in out.iterdir()))}")
     return 0

@@ -3,9 +3,11 @@ from __future__ import annotations
 
 from common.env.render import render
 from common.env.scenarios import SCENARIOS
+from sage.errors import nonneg_int, output_file
 
 
 def _render(args):
+    output_file(args.out, "--out", figure=True)
     names = list(SCENARIOS) if args.all else [args.scenario]
     records = render(args.out, names, seed=args.seed)
     for name, rec in records.items():
@@ -20,5 +22,5 @@ def register(commands, bench):
     r.add_argument("--scenario", choices=sorted(SCENARIOS), default="maze")
     r.add_argument("--all", action="store_true", help="3x3 grid of all nine scenarios")
     r.add_argument("--out", default="scenario.png")
-    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--seed", type=nonneg_int, default=0)
     r.set_defaults(func=_render)

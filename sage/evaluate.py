@@ -11,9 +11,12 @@ from __future__ import annotations
 import dataclasses
 import json
 import sys
+from pathlib import Path
 
 from common.audit.recording import Recorder
+from common.env.scenarios import SCENARIOS
 from common.evaluation.deployment import evaluate_policy
+from sage.errors import UsageError, nonneg_int, positive_int, user_input
 from sage.runs import load_run
 from services.config import FINAL_EVAL_SEED
 
@@ -39,16 +42,20 @@ def eval_record(e: dict) -> dict:
 
 
 def run_eval_command(args) -> int:
-    cfg, params, version = load_run(args.checkpoint)
-    if args.scenario:
-        cfg.scenario = args.scenario
+    if args.record and Path(args.record).suffix != ".npz":
+        raise UsageError(f"--record {args.record}: recordings are .npz files")
+    with user_input(args.checkpoint):
+        cfg, params, version = load_run(args.checkpoint)
+    with user_input():
+        if args.scenario:
+            cfg.scenario = args.scenario
+        env_cfg = cfg.env_config()
+        if getattr(args, "human_slot", None) is not None:
+            # a robot-trained team deployed beside a human: the same trees drive the
+            # other two slots, the QP holds the human's block fixed (Eq. qpshield)
+            env_cfg = dataclasses.replace(
+                env_cfg, human_slot=None if args.human_slot == "none" else int(args.human_slot))
     shielded = not args.unshielded
-    env_cfg = cfg.env_config()
-    if getattr(args, "human_slot", None) is not None:
-        # a robot-trained team deployed beside a human: the same trees drive the
-        # other two slots, the QP holds the human's block fixed (Eq. qpshield)
-        env_cfg = dataclasses.replace(
-            env_cfg, human_slot=None if args.human_slot == "none" else int(args.human_slot))
     recorder = Recorder() if args.record else None   # records the very episodes it scores
     raw = evaluate_policy(params, env_cfg, args.episodes, seed=args.seed, shielded=shielded, recorder=recorder)
     rec = eval_record(raw)
@@ -74,9 +81,10 @@ def run_eval_command(args) -> int:
 def register(commands, bench) -> None:
     p = commands.add_parser("eval", help="deployment evaluation: hard trees + exact QP only")
     p.add_argument("checkpoint", help="run directory or checkpoint file")
-    p.add_argument("--episodes", type=int, default=20)
-    p.add_argument("--seed", type=int, default=FINAL_EVAL_SEED, help="evaluation seeds start here (disjoint from training)")
-    p.add_argument("--scenario", default=None, help="override the run's scenario")
+    p.add_argument("--episodes", type=positive_int, default=20)
+    p.add_argument("--seed", type=nonneg_int, default=FINAL_EVAL_SEED,
+                   help="evaluation seeds start here (disjoint from training)")
+    p.add_argument("--scenario", default=None, choices=sorted(SCENARIOS), help="override the run's scenario")
     p.add_argument("--unshielded", action="store_true", help="execute the trees' actions without the QP")
     p.add_argument("--human-slot", default=None, choices=["0", "1", "2", "none"],
                    help="deploy beside the scripted human partner in this carrier slot (its block is "

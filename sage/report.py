@@ -22,6 +22,7 @@ import numpy as np
 
 from common.algos.registry import METHOD_SPECS, METHODS
 from common.env.scenarios import FAMILIES, SCENARIO_TITLES
+from sage.errors import UsageError, user_input
 
 METHOD_TITLES = {name: spec.title for name, spec in METHOD_SPECS.items()}
 # Keys every result's "eval" block carries (deployment evaluation).
@@ -58,11 +59,18 @@ def load_results(paths: Iterable[Path]) -> list[Result]:
             raw = json.loads(path.read_text())
         except json.JSONDecodeError as exc:
             raise ValueError(f"{path}: not valid JSON ({exc})") from exc
+        except UnicodeDecodeError as exc:
+            raise ValueError(f"{path}: not a text file ({exc.reason})") from exc
+        if not isinstance(raw, dict):
+            raise ValueError(f"{path}: a result is a JSON object, got {type(raw).__name__}")
         missing = [k for k in RESULT_KEYS if k not in raw]
         if missing:
             raise ValueError(f"{path}: result is missing keys {missing}")
         if raw["method"] not in METHOD_TITLES:
             raise ValueError(f"{path}: unknown method {raw['method']!r}")
+        for key, kind in (("eval", dict), ("train_curve", list), ("budget", dict)):
+            if not isinstance(raw[key], kind):
+                raise ValueError(f"{path}: {key!r} must be a JSON {'object' if kind is dict else 'list'}")
         results.append(Result(**{k: raw[k] for k in RESULT_KEYS}))
     return results
 
@@ -379,7 +387,10 @@ def write_figures(results: list[Result], summary: dict, out_dir: Path) -> list[P
 
 
 def write_report(result_paths: Iterable[Path], out_dir: Path) -> dict:
-    results = load_results(result_paths)
+    return report_results(load_results(result_paths), out_dir)
+
+
+def report_results(results: list[Result], out_dir: Path) -> dict:
     if not results:
         raise ValueError("no results to report")
     summary = summarize(results)
@@ -404,9 +415,18 @@ def _report(args: argparse.Namespace) -> int:
     paths = []
     for item in args.results:
         p = Path(item)
+        if not p.exists():
+            raise UsageError(f"no such result file or directory: {p}")
         paths += sorted(p.glob("*.json")) if p.is_dir() else [p]
     paths = [p for p in paths if p.name not in ("suite_config.json", "summary.json")]
-    out = write_report(paths, Path(args.out))
+    if not paths:
+        raise UsageError(f"no result JSON files in {' '.join(args.results)}")
+    with user_input():
+        results = load_results(paths)
+    out_dir = Path(args.out)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise UsageError(f"--out {out_dir} exists and is not a directory")
+    out = report_results(results, out_dir)
     print(Path(out["table"]).read_text())
     print(json.dumps(out, indent=2))
     return 0

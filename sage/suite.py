@@ -20,10 +20,13 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from common.algos.registry import METHODS
-from common.env.scenarios import FAMILIES
+from common.env.scenarios import FAMILIES, SCENARIOS
 from common.rundir import RunDir, atomic_write_text, read_jsonl
+from sage.errors import UsageError, int_list, nonneg_int, positive_float, positive_int, user_input
 from sage.evaluate import eval_record
 from sage.report import CURVE_KEYS
+from sage.train import apply_override
+from services.config import TrainConfig
 
 
 @dataclass
@@ -56,8 +59,12 @@ class RunSpec:
 
 def plan(cfg: SuiteConfig) -> list[RunSpec]:
     unknown = [m for m in cfg.methods if m not in METHODS]
-    if unknown:
-        raise ValueError(f"unknown methods {unknown}; choose from {METHODS}")
+    if unknown or not cfg.methods:
+        raise ValueError(f"unknown methods {unknown}; choose from {', '.join(METHODS)}")
+    unknown = [s for s in cfg.scenarios if s not in SCENARIOS]
+    if unknown or not cfg.scenarios:
+        raise ValueError(f"unknown scenarios {unknown}; choose from {', '.join(sorted(SCENARIOS))}, "
+                         f"a family ({', '.join(FAMILIES)}) or all")
     return [RunSpec(m, s, k) for s, k, m in itertools.product(cfg.scenarios, cfg.seeds, cfg.methods)]
 
 
@@ -148,15 +155,15 @@ def register(commands, bench) -> None:
     p.add_argument("--methods", default=",".join(d.methods))
     p.add_argument("--scenarios", default="all", help="comma list, a family (LCP/STR/CCN) or 'all'")
     p.add_argument("--seeds", default=",".join(map(str, d.seeds)))
-    p.add_argument("--minutes-per-run", type=float, default=d.minutes_per_run)
-    p.add_argument("--updates-per-run", type=int, default=d.updates_per_run,
+    p.add_argument("--minutes-per-run", type=positive_float, default=d.minutes_per_run)
+    p.add_argument("--updates-per-run", type=positive_int, default=d.updates_per_run,
                    help="learner updates per run (same samples for every method); with "
                         "--minutes-per-run, whichever ends first")
-    p.add_argument("--eval-episodes", type=int, default=d.eval_episodes)
-    p.add_argument("--envs-per-actor", type=int, default=d.envs_per_actor)
+    p.add_argument("--eval-episodes", type=nonneg_int, default=d.eval_episodes)
+    p.add_argument("--envs-per-actor", type=positive_int, default=d.envs_per_actor)
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="passed to every `sage train` (e.g. --set algo.actor_lr=1e-3)")
-    p.add_argument("--workers", type=int, default=None, help="parallel runs (default: cores)")
+    p.add_argument("--workers", type=positive_int, default=None, help="parallel runs (default: cores)")
     p.add_argument("--out", default=d.out_dir)
     p.set_defaults(func=_suite)
 
@@ -165,19 +172,36 @@ def _scenarios(arg: str) -> list[str]:
     if arg == "all":
         return [s for f in FAMILIES.values() for s in f]
     out = []
-    for part in arg.split(","):
+    for part in filter(None, (p.strip() for p in arg.split(","))):
         out += FAMILIES.get(part, [part])
     return out
 
 
+def check_train_overrides(items: list[str]) -> None:
+    """Apply the ``--set`` items to a fresh run config, as every `sage train` of
+    the suite will: a bad one fails here, once, instead of in every run."""
+    cfg = TrainConfig()
+    for item in items:
+        apply_override(cfg, item)
+    with user_input("--set"):
+        cfg.resolve()
+
+
 def _suite(args: argparse.Namespace) -> int:
-    cfg = SuiteConfig(
-        methods=args.methods.split(","), scenarios=_scenarios(args.scenarios),
-        seeds=[int(s) for s in args.seeds.split(",")], minutes_per_run=args.minutes_per_run,
-        updates_per_run=args.updates_per_run,
-        eval_episodes=args.eval_episodes, envs_per_actor=args.envs_per_actor, out_dir=args.out,
-        train_overrides=list(args.set),
-    )
+    with user_input():
+        cfg = SuiteConfig(
+            methods=[m.strip() for m in args.methods.split(",") if m.strip()],
+            scenarios=_scenarios(args.scenarios),
+            seeds=int_list(args.seeds, minimum=0, name="--seeds"), minutes_per_run=args.minutes_per_run,
+            updates_per_run=args.updates_per_run,
+            eval_episodes=args.eval_episodes, envs_per_actor=args.envs_per_actor, out_dir=args.out,
+            train_overrides=list(args.set),
+        )
+        plan(cfg)
+    check_train_overrides(cfg.train_overrides)
+    out = Path(cfg.out_dir)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out} exists and is not a directory")
     if args.workers:
         cfg.workers = args.workers
     run_suite(cfg)

@@ -11,6 +11,8 @@ import dataclasses
 import json
 import logging
 import sys
+import types
+import typing
 from pathlib import Path
 
 from common.algos.registry import METHODS, method_spec
@@ -19,7 +21,8 @@ from common.evaluation.deployment import evaluate_policy
 from common.rundir import RunDir, atomic_write_text
 from deploy.sage_run import METRICS_OFFSETS, default_actor_count, parse_ids, run_supervised
 from deploy.supervisor import EXIT_GAVE_UP
-from sage.runs import last_progress, load_run
+from sage.errors import UsageError, nonneg_int, one_line, port, positive_float, positive_int, user_input
+from sage.runs import last_progress, load_run, read_config
 from services.config import FINAL_EVAL_SEED, TrainConfig
 from services.launcher import ROLES, run_inprocess
 
@@ -29,19 +32,19 @@ def register(commands, bench) -> None:
     p = commands.add_parser("train", help="train a method with actor/shield/learner services")
     p.add_argument("--scenario", default=d.scenario, choices=sorted(SCENARIOS))
     p.add_argument("--method", default=d.method, choices=METHODS)
-    p.add_argument("--updates", type=int, default=None,
+    p.add_argument("--updates", type=positive_int, default=None,
                    help=f"learner updates (budget; default {d.updates}, or unlimited when --minutes is given)")
-    p.add_argument("--minutes", type=float, default=d.minutes, help="wall-clock budget (whichever first)")
-    p.add_argument("--actors", type=int, default=d.actors)
-    p.add_argument("--envs-per-actor", type=int, default=d.envs_per_actor)
-    p.add_argument("--chunk-len", type=int, default=d.chunk_len)
-    p.add_argument("--max-lag", type=int, default=d.max_lag)
-    p.add_argument("--seed", type=int, default=d.seed)
+    p.add_argument("--minutes", type=positive_float, default=d.minutes, help="wall-clock budget (whichever first)")
+    p.add_argument("--actors", type=positive_int, default=d.actors)
+    p.add_argument("--envs-per-actor", type=positive_int, default=d.envs_per_actor)
+    p.add_argument("--chunk-len", type=positive_int, default=d.chunk_len)
+    p.add_argument("--max-lag", type=nonneg_int, default=d.max_lag)
+    p.add_argument("--seed", type=nonneg_int, default=d.seed)
     p.add_argument("--run-id", default="")
     p.add_argument("--run-dir", default="")
     p.add_argument("--mode", default=d.mode, choices=("inprocess", "supervised"))
-    p.add_argument("--eval-episodes", type=int, default=d.eval_episodes)
-    p.add_argument("--metrics-port", type=int, default=d.ports.inprocess,
+    p.add_argument("--eval-episodes", type=nonneg_int, default=d.eval_episodes)
+    p.add_argument("--metrics-port", type=port, default=d.ports.inprocess,
                    help="Prometheus port (in-process registry); 0 = off")
     p.add_argument("--config", default=None, help="start from a saved config JSON (flags override)")
     p.add_argument("--human-slot", type=int, default=None, choices=(0, 1, 2),
@@ -59,8 +62,20 @@ def register(commands, bench) -> None:
 
 
 # ----------------------------------------------------------------- sage train
+def load_config_file(path: str) -> TrainConfig:
+    """A saved run config; a missing, truncated or invalid file is a ``UsageError`` naming it."""
+    with user_input(f"--config {path}"):
+        return read_config(path)
+
+
 def config_from_args(args) -> TrainConfig:
-    cfg = TrainConfig.load(args.config) if args.config else TrainConfig()
+    """The resolved run config of ``sage train``; bad values are a ``UsageError``."""
+    cfg = load_config_file(args.config) if args.config else TrainConfig()
+    with user_input():
+        return _apply_args(cfg, args)
+
+
+def _apply_args(cfg: TrainConfig, args) -> TrainConfig:
     if args.updates is not None:
         updates = args.updates
     elif args.minutes:
@@ -86,7 +101,9 @@ def config_from_args(args) -> TrainConfig:
 
 def apply_override(cfg: TrainConfig, item: str) -> None:
     """``SECTION.KEY=VALUE`` onto the config (env/algo dicts, a nested dataclass, or
-    ``train.KEY`` for a plain top-level TrainConfig field)."""
+    ``train.KEY`` for a plain top-level TrainConfig field). The value is parsed as
+    JSON (else taken as a string) and must have the field's type; a bad item is a
+    ``SystemExit`` with a one-line message naming it."""
     if "=" not in item or "." not in item.split("=", 1)[0]:
         raise SystemExit(f"--set expects SECTION.KEY=VALUE, got {item!r}")
     path, raw = item.split("=", 1)
@@ -96,22 +113,82 @@ def apply_override(cfg: TrainConfig, item: str) -> None:
     except json.JSONDecodeError:
         value = raw
     if section in ("env", "algo"):
+        owner = type(getattr(cfg, section))
+        hints = typing.get_type_hints(owner)
+        if key in hints:
+            value = _typed_override(path, raw, value, hints[key])
         try:
             cfg.override(section, key, value)
         except (ValueError, TypeError) as exc:
-            raise SystemExit(f"--set {path}={raw}: {exc}") from None
+            raise SystemExit(f"--set {path}={raw}: {one_line(exc)}") from None
         return
     if section == "train":
         plain = {f.name for f in dataclasses.fields(cfg)
                  if not dataclasses.is_dataclass(getattr(cfg, f.name)) and f.name not in ("env", "algo")}
         if key not in plain:
             raise SystemExit(f"--set: unknown config field {path!r} (train.* takes {', '.join(sorted(plain))})")
-        setattr(cfg, key, value)
+        setattr(cfg, key, _typed_override(path, raw, value, typing.get_type_hints(type(cfg))[key]))
         return
     target = getattr(cfg, section, None)
     if not dataclasses.is_dataclass(target) or key not in {f.name for f in dataclasses.fields(target)}:
         raise SystemExit(f"--set: unknown config field {path!r}")
-    setattr(target, key, value)
+    setattr(target, key, _typed_override(path, raw, value, typing.get_type_hints(type(target))[key]))
+
+
+def _typed_override(path: str, raw: str, value, hint):
+    """``value`` (parsed from ``raw``) checked against the field's type ``hint``;
+    a ``SystemExit`` naming the item when it does not fit."""
+    try:
+        return _coerce(value, raw, hint)
+    except TypeError as exc:
+        raise SystemExit(f"--set {path}={raw}: expected {exc}") from None
+
+
+def _coerce(value, raw, hint):
+    """``value`` as type ``hint`` (int, float, bool, str, X | None, tuple[...], list[...],
+    a nested dataclass as a map); a ``TypeError`` naming the expected type otherwise."""
+    origin, targs = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in targs:
+            return None
+        inner = [t for t in targs if t is not type(None)]
+        errors = []
+        for t in inner:
+            try:
+                return _coerce(value, raw, t)
+            except TypeError as exc:
+                errors.append(str(exc))
+        raise TypeError(" or ".join(errors + (["null"] if type(None) in targs else [])))
+    if hint is bool:
+        if isinstance(value, bool):
+            return value
+        raise TypeError("true or false")
+    if hint is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        raise TypeError("an integer")
+    if hint is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        raise TypeError("a number")
+    if hint is str:
+        return value if isinstance(value, str) else raw   # e.g. run_id=123 stays the string "123"
+    if origin in (tuple, list):
+        if not isinstance(value, list):
+            raise TypeError(f"a JSON list ({hint})")
+        if origin is tuple and targs and targs[-1] is not Ellipsis:
+            if len(value) != len(targs):
+                raise TypeError(f"a JSON list of {len(targs)} ({hint})")
+            items = [_coerce(v, json.dumps(v), t) for v, t in zip(value, targs)]
+        else:
+            t = targs[0] if targs else typing.Any
+            items = [v if t is typing.Any else _coerce(v, json.dumps(v), t) for v in value]
+        return tuple(items) if origin is tuple else items
+    if dataclasses.is_dataclass(hint):
+        if isinstance(value, dict):
+            return value
+        raise TypeError(f"a JSON map of {hint.__name__} fields")
+    return value
 
 
 def final_eval(cfg: TrainConfig, params: dict) -> dict:
@@ -128,7 +205,7 @@ def cmd_train(args) -> int:
         print(f"sage train: {run.root} holds a run of {clash}; the learner would resume its checkpoints. "
               "Use another --run-dir (or the same method and scenario to resume).", file=sys.stderr)
         return 2
-    cfg_path = cfg.save(run.config)
+    cfg_path = save_run_config(cfg, run)
     print(f"run {cfg.run_id}: {cfg.method} on {cfg.scenario}, {cfg.actors} actor(s) x {cfg.envs_per_actor} envs, "
           f"mode {cfg.mode}, run dir {run.root}", file=sys.stderr)
     if cfg.mode == "supervised":
@@ -157,13 +234,25 @@ def cmd_train(args) -> int:
     return 0
 
 
+def save_run_config(cfg: TrainConfig, run: RunDir) -> Path:
+    """``cfg`` into the run directory; a run dir that cannot be one is a ``UsageError``."""
+    if run.root.exists() and not run.root.is_dir():
+        raise UsageError(f"run dir {run.root} exists and is not a directory")
+    with user_input(f"run dir {run.root}"):
+        return cfg.save(run.config)
+
+
 def _resume_clash(run: RunDir, cfg: TrainConfig) -> str | None:
     """What an existing run directory holds when it cannot be resumed by ``cfg``."""
+    if run.root.exists() and not run.root.is_dir():
+        raise UsageError(f"run dir {run.root} exists and is not a directory")
     if not run.config.exists():
         return None
     try:
         prev = json.loads(run.config.read_text())
-    except json.JSONDecodeError:
+    except (ValueError, OSError):   # not JSON, not text, not readable
+        return "an unreadable config.json"
+    if not isinstance(prev, dict):
         return "an unreadable config.json"
     if (prev.get("method"), prev.get("scenario")) != (cfg.method, cfg.scenario):
         return f"method {prev.get('method')!r} on {prev.get('scenario')!r}"
@@ -179,29 +268,40 @@ def _num(o):
 # ----------------------------------------------------------------- sage up
 def add_up_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", default=None, help="run config JSON (services/config.py); default: a fresh one")
-    p.add_argument("--actors", type=int, default=None,
+    p.add_argument("--actors", type=positive_int, default=None,
                    help=f"number of actors in the run (default: config's value, or cores-1 = {default_actor_count()} "
                         "for a fresh config)")
     p.add_argument("--roles", default=",".join(ROLES), help="which services this host runs (default: all)")
     p.add_argument("--actor-ids", default=None, help="actor ids this host runs, e.g. 2-3 (default: all)")
     p.add_argument("--connect", action="append", default=None,
                    help="Zenoh router endpoint, e.g. tcp/10.0.0.1:7447 (repeatable; default: start a local router)")
-    p.add_argument("--metrics-base", type=int, default=None,
+    p.add_argument("--metrics-base", type=port, default=None,
                    help="Prometheus ports: base learner, base+1 shield, base+10+i actor i (e.g. 9400; 0 = off)")
     fresh = p.add_argument_group("fresh run (without --config)")
-    fresh.add_argument("--scenario", default=None)
-    fresh.add_argument("--method", default=None)
-    fresh.add_argument("--updates", type=int, default=None)
-    fresh.add_argument("--minutes", type=float, default=None)
-    fresh.add_argument("--envs-per-actor", type=int, default=None)
-    fresh.add_argument("--seed", type=int, default=None)
+    fresh.add_argument("--scenario", default=None, choices=sorted(SCENARIOS))
+    fresh.add_argument("--method", default=None, choices=METHODS)
+    fresh.add_argument("--updates", type=positive_int, default=None)
+    fresh.add_argument("--minutes", type=positive_float, default=None)
+    fresh.add_argument("--envs-per-actor", type=positive_int, default=None)
+    fresh.add_argument("--seed", type=nonneg_int, default=None)
     fresh.add_argument("--run-id", default=None)
     fresh.add_argument("--run-dir", default=None)
 
 
 def up_config_from_args(args) -> Path:
     """Write the run config the supervisor will use and return its path."""
-    cfg = TrainConfig.load(args.config) if args.config else TrainConfig(actors=default_actor_count())
+    cfg = up_config(args)
+    return save_run_config(cfg, RunDir(cfg.run_dir))
+
+
+def up_config(args) -> TrainConfig:
+    """The resolved run config of ``sage up`` (nothing written); bad values are a ``UsageError``."""
+    cfg = load_config_file(args.config) if args.config else TrainConfig(actors=default_actor_count())
+    with user_input():
+        return _apply_up_args(cfg, args)
+
+
+def _apply_up_args(cfg: TrainConfig, args) -> TrainConfig:
     for name in ("actors", "scenario", "method", "updates", "minutes", "envs_per_actor", "seed", "run_id", "run_dir"):
         value = getattr(args, name)
         if value is not None:
@@ -215,20 +315,32 @@ def up_config_from_args(args) -> Path:
         cfg.ports.shield = base + METRICS_OFFSETS["shield"] if base else 0
         cfg.ports.actor_base = base + METRICS_OFFSETS["actor_base"] if base else 0
     cfg.mode = "supervised"
-    cfg.resolve()
-    return cfg.save(RunDir(cfg.run_dir).config)
+    return cfg.resolve()
+
+
+def parse_roles(text: str) -> list[str]:
+    roles = [r.strip() for r in text.split(",") if r.strip()]
+    bad = [r for r in roles if r not in ROLES]
+    if bad or not roles:
+        what = f"unknown roles {bad}" if bad else "no roles"
+        raise UsageError(f"--roles {text!r}: {what}; choose from {', '.join(ROLES)}")
+    return roles
 
 
 def cmd_up(args) -> int:
-    roles = [r.strip() for r in args.roles.split(",") if r.strip()]
-    try:
-        path = up_config_from_args(args)
-        ids = parse_ids(args.actor_ids) if args.actor_ids else None
-    except (ValueError, FileNotFoundError) as exc:
-        print(f"sage up: {exc}", file=sys.stderr)
-        return 2
+    # everything the user gave is checked before anything is written or started
+    roles = parse_roles(args.roles)
+    cfg = up_config(args)
+    ids = None
+    if args.actor_ids:
+        with user_input("--actor-ids"):
+            ids = parse_ids(args.actor_ids)
+        if max(ids) >= cfg.actors:
+            raise UsageError(f"--actor-ids {args.actor_ids}: the run has {cfg.actors} actor(s), "
+                             f"ids 0..{cfg.actors - 1}")
+    path = save_run_config(cfg, RunDir(cfg.run_dir))
     try:
         return run_supervised(path, roles=roles, actor_ids=ids)
-    except (RuntimeError, ValueError) as exc:  # e.g. a bad role, or the local router never came up
+    except RuntimeError as exc:  # e.g. the local router never came up
         print(f"sage up: {exc}", file=sys.stderr)
-        return EXIT_GAVE_UP if isinstance(exc, RuntimeError) else 2
+        return EXIT_GAVE_UP

@@ -52,17 +52,23 @@ class Service:
 
     def decode(self, payload: bytes, expect) -> wire.Message | None:
         """Decode or count-and-log the rejection; never raises."""
+        unexpected = None
         try:
             msg = wire.decode(payload, run_id=self.cfg.run_id, expect=expect)
         except wire.WireError as exc:
-            self.rejected[exc.reason] += 1
-            self.m.rejected.labels(**self.labels, reason=exc.reason).inc()
-            n = self.rejected[exc.reason]
-            if n <= 3 or n % 100 == 0:  # log the first few and then every 100th
-                self.log.warning("rejected message (%s, #%d): %s", exc.reason, n, exc.detail)
-            return None
-        self.m.received.labels(**self.labels, kind=msg.kind).inc()
-        return msg
+            reason, detail = exc.reason, exc.detail
+        except Exception as exc:  # noqa: BLE001 - defence in depth: no message may kill the loop
+            reason, detail, unexpected = "malformed", f"{type(exc).__name__}: {str(exc)[:200]}", exc
+        else:
+            self.m.received.labels(**self.labels, kind=msg.kind).inc()
+            return msg
+        self.rejected[reason] += 1
+        self.m.rejected.labels(**self.labels, reason=reason).inc()
+        n = self.rejected[reason]
+        if n <= 3 or n % 100 == 0:  # log the first few and then every 100th
+            self.log.warning("rejected message (%s, #%d): %s", reason, n, detail,
+                             exc_info=unexpected)  # a decoder bug: keep its traceback
+        return None
 
     # ------------------------------------------------------------- status / control
     def status_fields(self) -> dict:
@@ -144,13 +150,13 @@ def run_entry(role: str, make_service, argv=None) -> int:
     member = getattr(args, "actor_id", 0)
     port = {"shield": cfg.ports.shield, "learner": cfg.ports.learner}.get(
         role, cfg.ports.actor_base + member if cfg.ports.actor_base else 0)
-    server = serve_metrics(port, registry)
+    server = serve_metrics(port, registry, addr=cfg.ports.bind)
     mode = cfg.transport.mode
     if mode == "peer" and cfg.transport.connect and not cfg.transport.listen:
         # A peer with gossip off that only dials a router does not get its
         # partners' publications routed to it; as a client it does.
         mode = "client"
-    bus = Bus.open(connect=cfg.transport.connect, listen=cfg.transport.listen, mode=mode)
+    bus = Bus.from_transport(cfg.transport, role=role, mode=mode)   # TLS identity of this role, if configured
     try:
         service = make_service(cfg, bus, member, registry, stop)
         return int(service.run() or 0)

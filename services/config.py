@@ -20,6 +20,7 @@ from common.algos.config import AlgoConfig
 from common.algos.registry import METHODS
 from common.env.config import EnvConfig
 from common.keys import check_id
+from common.rundir import atomic_write_text
 
 # Evaluation seeds, disjoint from the training envs (1000 * seed + actor id) and each other.
 FINAL_EVAL_SEED = 10_000
@@ -28,11 +29,21 @@ DEPLOY_PROBE_SEED = 30_000
 
 @dataclass
 class TransportConfig:
-    """Zenoh endpoints. In-process mode ignores them (no network at all)."""
+    """Zenoh endpoints. In-process mode ignores them (no network at all).
+
+    TLS (deploy/README.md, "Secure deployment"): set all three ``tls_*``
+    paths (PEM) and write endpoints as ``tls/<host>:<port>``; ``{role}`` in a
+    path is replaced by the service's role, so one run config can name one
+    certificate per role (``certs/{role}.pem``, CN = role). Empty = plain TCP.
+    """
 
     mode: str = "peer"
     connect: list[str] = field(default_factory=list)   # e.g. ["tcp/10.0.0.1:7447"] (a router)
-    listen: list[str] = field(default_factory=list)    # e.g. ["tcp/0.0.0.0:0"]
+    listen: list[str] = field(default_factory=list)    # e.g. ["tcp/127.0.0.1:0"]
+    tls_root_ca: str = ""        # CA certificate the router's certificate must chain to
+    tls_cert: str = ""           # this process's certificate, e.g. "certs/{role}.pem"
+    tls_key: str = ""            # its private key, e.g. "certs/{role}.key"
+    tls_verify_name: bool = True  # the router's certificate must name the host in the endpoint
 
 
 @dataclass
@@ -43,6 +54,7 @@ class PortsConfig:
     shield: int = 0
     actor_base: int = 0
     inprocess: int = 0   # the single registry of `sage train --mode inprocess`
+    bind: str = "127.0.0.1"   # address the metric servers listen on; "0.0.0.0" for remote scrapers
 
 
 @dataclass
@@ -50,11 +62,18 @@ class ShieldConfig:
     max_batch: int = 256          # QP rows per solve_cbf_qp call
     window_s: float = 0.002       # wait at most this long for more requests once one arrived
     backend: str = "default"      # common.shield.qp.BACKENDS name
+    # Queries waiting for a batch, at most (one per actor per step is the normal load;
+    # beyond this a flood is answered "overloaded" at once and counted, memory stays bounded)
+    max_queue: int = 1024
 
 
 @dataclass
 class ActorConfig:
     shield_timeout_s: float = 1.0      # one query; no answer -> retry (nothing executed)
+    # An answer executes only if it passes the actor's own check (common/shield/verify.py):
+    # rows met to this tolerance (relative to max(1, ||C_i||)), box, human block untouched.
+    # The exact QP meets rows to 1e-10; 1e-6 leaves room for float64 round-off only.
+    verify_tol: float = 1e-6
     unhealthy_after_s: float = 10.0    # no shield answer this long -> status "unhealthy"
     exit_on_unhealthy: bool = False    # supervised mode: exit(3) so the supervisor sees it
     params_wait_s: float = 60.0        # max wait for the first parameters before unhealthy
@@ -64,6 +83,9 @@ class ActorConfig:
     # Without it, actors outrun a slow learner and most chunks go stale.
     max_chunks_ahead: int = 2
     pace_timeout_s: float = 120.0      # a lost params message never deadlocks: roll out anyway
+    # Fault injection (as RLlib's fault-injecting env): per env step, the actor process
+    # exits abruptly with this probability. For supervised runs, which restart it; 0 = off.
+    chaos_crash_prob: float = 0.0
 
 
 @dataclass
@@ -80,6 +102,7 @@ class TrainConfig:
     updates: int = 100                 # budget in learner updates (~4 min on 2 cores: SAGE on narrow_gate learns to succeed) ...
     minutes: float | None = None       # ... or wall-clock minutes (whichever first)
     max_lag: int = 1                   # accept chunks from versions >= current - max_lag
+    learner_queue_chunks: int = 64     # bound of the learner's chunk queue and pending set (drops counted)
     seed: int = 0
     run_dir: str = ""                  # filled by resolve(): runs/<run_id>
     mode: str = "inprocess"            # inprocess | supervised
@@ -118,22 +141,84 @@ class TrainConfig:
 
     # -------------------------------------------------------------- helpers
     def validate(self) -> "TrainConfig":
+        # Types first (a config.json or an override may carry "x" for a number):
+        # each plain field of this config and of its service sections must have
+        # its default's type (an int is fine for a float, a bool is not an int).
+        def check_types(obj, prefix: str) -> None:
+            for f in dataclasses.fields(obj):
+                value = getattr(obj, f.name)
+                default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+                if dataclasses.is_dataclass(default):
+                    if f.name in ("transport", "ports", "shield", "actor"):
+                        if not isinstance(value, type(default)):
+                            raise ValueError(f"{prefix}{f.name} must be a map of {type(default).__name__} fields, "
+                                             f"got {value!r}")
+                        check_types(value, f"{f.name}.")
+                    continue   # env / algo: validated by their owners
+                if default is None:   # minutes: float | None
+                    ok = value is None or (isinstance(value, (int, float)) and not isinstance(value, bool))
+                    want = "a number or null"
+                elif isinstance(default, bool):
+                    ok, want = isinstance(value, bool), "true or false"
+                elif isinstance(default, int):
+                    ok, want = isinstance(value, int) and not isinstance(value, bool), "an integer"
+                elif isinstance(default, float):
+                    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+                    want = "a number"
+                elif isinstance(default, str):
+                    ok, want = isinstance(value, str), "a string"
+                elif isinstance(default, list):
+                    ok = isinstance(value, list) and all(isinstance(v, str) for v in value)
+                    want = "a list of strings"
+                else:
+                    continue
+                if not ok:
+                    raise ValueError(f"{prefix}{f.name} must be {want}, got {value!r}")
+
+        check_types(self, "")
         check_id(self.run_id, "run id")
+        self.env_config()   # EnvConfig rejects an unknown scenario (and names the known ones)
+        if self.minutes is not None and not self.minutes > 0:
+            raise ValueError(f"minutes must be > 0 when given, got {self.minutes}")
+        for name in ("seed", "eval_episodes", "eval_max_steps", "checkpoint_keep"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.checkpoint_every < 1:
+            raise ValueError(f"checkpoint_every must be >= 1, got {self.checkpoint_every}")
+        for name in ("status_period_s", "params_rebroadcast_s"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for f in dataclasses.fields(self.ports):
+            if isinstance(getattr(self.ports, f.name), int) and not 0 <= getattr(self.ports, f.name) <= 65535:
+                raise ValueError(f"ports.{f.name} must be a port 0..65535 (0 = off), got {getattr(self.ports, f.name)}")
+        for name in ("shield_timeout_s", "unhealthy_after_s", "params_wait_s", "pace_timeout_s"):
+            if not getattr(self.actor, name) > 0:
+                raise ValueError(f"actor.{name} must be > 0, got {getattr(self.actor, name)}")
+        if not 0.0 <= self.actor.chaos_crash_prob < 1.0:
+            raise ValueError(f"actor.chaos_crash_prob must be in [0, 1), got {self.actor.chaos_crash_prob}")
+        if self.actor.chaos_crash_prob > 0 and self.mode != "supervised":
+            raise ValueError("actor.chaos_crash_prob needs --mode supervised (a crashed thread is not restarted)")
+        if not self.actor.verify_tol > 0 or self.learner_queue_chunks < 1:
+            raise ValueError("actor.verify_tol must be > 0 and learner_queue_chunks >= 1")
+        if self.actor.max_chunks_ahead < 1:
+            raise ValueError(f"actor.max_chunks_ahead must be >= 1, got {self.actor.max_chunks_ahead}")
         if self.method not in METHODS:
             raise ValueError(f"method {self.method!r} not in {METHODS}")
         if self.mode not in ("inprocess", "supervised"):
             raise ValueError(f"mode {self.mode!r} must be inprocess or supervised")
         for name in ("actors", "envs_per_actor", "chunk_len"):
             if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1")
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.updates < 1 and not self.minutes:
-            raise ValueError("need a budget: updates >= 1 or minutes > 0")
+            raise ValueError(f"need a budget: updates >= 1 or minutes > 0, got updates {self.updates}")
         if self.torch_threads < 0:
             raise ValueError("torch_threads must be >= 0 (0 = torch default)")
         if self.deploy_probe_every < 0 or self.deploy_probe_episodes < 1:
             raise ValueError("deploy_probe_every must be >= 0 and deploy_probe_episodes >= 1")
         if self.max_lag < 0 or self.chunks_per_update < 0:
             raise ValueError("max_lag and chunks_per_update must be >= 0")
+        if self.shield.max_queue < 1:
+            raise ValueError(f"shield.max_queue must be >= 1, got {self.shield.max_queue}")
         if self.shield.max_batch < 1 or self.shield.window_s < 0:
             raise ValueError("shield.max_batch >= 1 and shield.window_s >= 0")
         return self
@@ -171,10 +256,8 @@ class TrainConfig:
         return json.dumps(dataclasses.asdict(self), indent=2, sort_keys=True, default=_json_default)
 
     def save(self, path: str | Path) -> Path:
-        p = Path(path)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        p.write_text(self.to_json() + "\n")
-        return p
+        """Atomically: other processes (services, `sage eval`) read it back."""
+        return atomic_write_text(path, self.to_json() + "\n")
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":

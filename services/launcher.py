@@ -114,7 +114,7 @@ def run_inprocess(cfg: TrainConfig, *, progress: bool = True, method=None, envs=
     ``solve`` replace the real components (tests). Raises if a service failed.
     """
     registry = registry if registry is not None else CollectorRegistry()
-    server = serve_metrics(cfg.ports.inprocess, registry)
+    server = serve_metrics(cfg.ports.inprocess, registry, addr=cfg.ports.bind)
     bus = Bus.open(inprocess=True)
     stop = threading.Event()
     overrides = {"shield": {"solve": solve}, "learner": {"method": method}}

@@ -87,7 +87,15 @@ class FakeMethod:
         self.batches = []
 
     def policy_params(self):
-        return {"carrier_0/W": self.w.copy(), "format_version": np.asarray(1)}
+        """Tree-shaped (depth 1, so actors accept them); fake_propose reads carrier_0/W."""
+        out = {"format_version": np.asarray(1.0, np.float32)}
+        for i in range(N):
+            out.update({f"carrier_{i}/W": self.w.astype(np.float32), f"carrier_{i}/b": np.zeros(1, np.float32),
+                        f"carrier_{i}/K": np.zeros((2, 3, O), np.float32),
+                        f"carrier_{i}/beta": np.zeros((2, 3), np.float32),
+                        f"carrier_{i}/log_std": np.zeros(3, np.float32),
+                        f"carrier_{i}/c_a": np.zeros(3, np.float32), f"carrier_{i}/s_a": np.ones(3, np.float32)})
+        return out
 
     def actor_settings(self, progress):
         return {"kappa": 1.0 + progress, "tau": 1.0}

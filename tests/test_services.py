@@ -219,11 +219,28 @@ def test_learner_counts_rejected_and_stale_chunks_and_keeps_running(tmp_path, bu
     wait_for(lambda: sum(learner.rejected.values()) == 3)
     assert dict(learner.rejected) == {"malformed": 1, "run_id": 1, "kind": 1}
     assert sample(reg, "sage_messages_rejected_total", role="learner", actor_id="", reason="run_id") == 1
-    # a chunk from another learner incarnation and one too old are dropped, not used
+    # chunks from another learner incarnation, too old, from the future (versions this
+    # learner never published) or with a forged actor id are dropped and counted, not used
     learner.version = 5
-    learner._admit({"incarnation": "someone-else", "version": 5})
-    learner._admit({"incarnation": learner.incarnation, "version": 4})
+
+    def chunk(seq, version, versions=None, incarnation=None, actor_id=0, sender="actor/0"):
+        body = {"incarnation": incarnation or learner.incarnation, "version": version, "actor_id": actor_id,
+                "version_t": np.asarray(versions if versions is not None else [version], np.int64)}
+        return wire.Message("traj", cfg.run_id, sender, seq, 0.0, body)
+
+    learner._admit(chunk(0, 5, incarnation="someone-else"))
+    learner._admit(chunk(1, 4))
+    learner._admit(chunk(2, 10**9))
+    learner._admit(chunk(3, 5, versions=[5, 10**9]))
+    learner._admit(chunk(4, 5, actor_id=7, sender="actor/7"))
+    learner._admit(chunk(5, 5, actor_id=0, sender="actor/1"))
     assert learner.counts["incarnation"] == 1 and learner.counts["stale"] == 1 and not learner.pending
+    assert learner.counts["future"] == 2 and learner.counts["actor_id"] == 2
+    assert learner.counts["lost"] == 0
+    learner._admit(chunk(6, 5))                      # actor/0's chunks 4 and 5 never arrived
+    assert learner.counts["lost"] == 2 and len(learner.pending) == 1
+    learner._admit(chunk(2, 5))                      # a restarted actor process starts over at 0
+    assert learner.counts["actor_restarts"] == 1 and learner.counts["lost"] == 4
     assert th.is_alive()
     stop.set()
     th.join(5)

@@ -150,6 +150,7 @@ def test_traj_batch_concatenates_env_axis():
                 "row_mask": np.ones((T, K, 2), bool), "fixed_mask": np.zeros((T, K, 9), bool),
                 **{k: r.normal(size=(T, K, 9)) for k in ("a_st", "a_bar", "a_prop", "a_exec")},
                 "logp": r.normal(size=(T, K, 3)), "leaf": np.zeros((T, K, 3), np.int64),
+                "shield_status": np.zeros((T, K), np.int32),
                 "reward": r.normal(size=(T, K)), "terminated": np.zeros((T, K), bool),
                 "truncated": np.zeros((T, K), bool), "final_state": np.zeros((T, K, 4)), 
                 "final_obs": np.zeros((T, K, 3, 2), np.float32),
@@ -174,3 +175,135 @@ def test_keys_are_scoped_and_ids_cannot_inject_wildcards():
             keys.traj(bad, 0)
     with pytest.raises(ValueError):
         keys.status("r1", "hacker", 0)
+
+
+# --------------------------------------------------------------------------- hardening regressions
+def _params_env():
+    body = {"version": 0, "incarnation": "x", "method": "m", "params": {"p": np.ones(2)}, "settings": {}}
+    return msgpack.unpackb(enc(body, "params"), raw=False)
+
+
+def _status_body(**changes):
+    body = {"role": "actor", "id": "0", "state": "running", "pid": 1, "uptime_s": 1.0, "version": -1,
+            "env_steps": 0, "env_steps_per_s": 0.0, "updates": 0, "success_rate": None,
+            "shield_p99_s": None, "message": "", "extra": {}}
+    body.update(changes)
+    return body
+
+
+@pytest.mark.parametrize("shape", [[0, 2**64 - 1], [2**64 - 1, 0], [0, 2**31, 2**31, 2**31], [0, 2**40],
+                                   [2**13, 2**13, 2**1]])
+def test_zero_size_array_with_huge_dims_is_a_limit_rejection(shape):
+    # used to escape decode as numpy's "array is too big" ValueError
+    env = _params_env()
+    env["body"]["params"]["p"] = {"nd": "f8", "shape": shape, "data": b""}
+    assert reason_of(msgpack.packb(env, use_bin_type=True)) == "limit"
+
+
+def test_zero_size_arrays_within_limits_still_decode():
+    env = _params_env()
+    env["body"]["params"]["p"] = {"nd": "f8", "shape": [0, 2**20], "data": b""}
+    out = wire.decode(msgpack.packb(env, use_bin_type=True), run_id=RUN).body["params"]["p"]
+    assert out.shape == (0, 2**20)
+    b = shield_req(M=0)                                   # no safety rows: C is [B, 0, 9]
+    assert wire.decode(enc(b), run_id=RUN).body["C"].shape == (3, 0, 9)
+
+
+def test_oversized_empty_map_message_is_rejected_fast_without_allocating():
+    import time
+    import tracemalloc
+    n = 16 * 2**20  # 16 MiB: one array of 16M empty maps (cost +1.2 GB RSS and 4.3 s before)
+    flat = b"\xdd" + n.to_bytes(4, "big") + b"\x80" * n
+    nested = (b"\xdc\xff\xff" + b"\x80" * 0xFFFF) * 256                  # 256 arrays of 65535 maps
+    nested = b"\xdc" + (256).to_bytes(2, "big") + nested
+    for payload in (flat, nested):
+        tracemalloc.start()
+        t0 = time.perf_counter()
+        try:
+            assert reason_of(payload) == "limit"
+            elapsed = time.perf_counter() - t0
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert elapsed < 1.0 and peak < 64 * 2**20, (elapsed, peak)
+    assert reason_of(b"\x00" * (wire.MAX_MESSAGE_BYTES + 1)) == "limit"
+
+
+def test_claimed_giant_lengths_and_deep_nesting_are_rejected():
+    for head in (b"\xdb\xff\xff\xff\xff", b"\xc6\xff\xff\xff\xff", b"\xdd\xff\xff\xff\xff",
+                 b"\xdf\xff\xff\xff\xff", b"\xc9\xff\xff\xff\xff\x01"):
+        assert reason_of(head + b"\x00" * 64) in ("limit", "malformed")
+    assert reason_of(msgpack.packb("x" * (wire.MAX_STR_BYTES + 1))) == "limit"
+    assert reason_of(b"\x91" * 2000 + b"\xc0") == "limit"              # parser stack
+    env = _params_env()
+    deep = 0
+    for _ in range(wire.MAX_DEPTH):
+        deep = [deep]
+    env["body"]["settings"]["kappa"] = deep
+    assert reason_of(msgpack.packb(env, use_bin_type=True)) == "limit"
+
+
+@pytest.mark.parametrize("field,value", [("version", -1), ("version", -2**63), ("version", 2**64 - 1)])
+def test_negative_or_out_of_range_versions_rejected(field, value):
+    body = {"version": value, "incarnation": "x", "method": "m", "params": {}, "settings": {}}
+    assert reason_of(enc(body, "params")) == "value"
+
+
+def test_status_version_may_be_minus_one_but_not_less():
+    msg = wire.decode(enc(_status_body(version=-1), "status"), run_id=RUN)
+    assert msg.body["version"] == -1
+    assert reason_of(enc(_status_body(version=-2), "status")) == "value"
+    for field in ("env_steps", "updates", "pid"):
+        assert reason_of(enc(_status_body(**{field: -1}), "status")) == "value"
+
+
+@pytest.mark.parametrize("seq", [-1, -2**63, 2**64 - 1])
+def test_negative_or_huge_seq_rejected(seq):
+    env = msgpack.unpackb(enc(shield_req()), raw=False)
+    env["seq"] = seq
+    assert reason_of(msgpack.packb(env, use_bin_type=True)) == "value"
+
+
+@pytest.mark.parametrize("t", [float("nan"), float("inf"), -float("inf")])
+def test_non_finite_time_rejected(t):
+    env = msgpack.unpackb(enc(shield_req()), raw=False)
+    env["t"] = t
+    assert reason_of(msgpack.packb(env, use_bin_type=True)) == "nonfinite"
+
+
+def test_unknown_status_state_and_control_command_rejected():
+    for state in wire.STATUS_STATES:
+        assert wire.decode(enc(_status_body(state=state), "status"), run_id=RUN).body["state"] == state
+    assert reason_of(enc(_status_body(state="exploded"), "status")) == "value"
+    assert reason_of(enc({"command": "rm -rf", "target": "*"}, "control")) == "value"
+
+
+def test_long_strings_rejected():
+    assert reason_of(wire.encode("control", {"command": "stop", "target": "*"}, run_id=RUN,
+                                 sender="a" * (wire.MAX_NAME_LEN + 1), seq=0)) == "limit"
+    assert reason_of(enc(_status_body(id="x" * (wire.MAX_NAME_LEN + 1)), "status")) == "limit"
+    assert wire.decode(enc(_status_body(message="m" * wire.MAX_TEXT_LEN), "status"), run_id=RUN)
+    assert reason_of(enc(_status_body(message="m" * (wire.MAX_TEXT_LEN + 1)), "status")) == "limit"
+    assert reason_of(enc(_status_body(extra={"k" * (wire.MAX_NAME_LEN + 1): 1.0}), "status")) == "limit"
+
+
+def test_version_must_be_the_int_one():
+    for v in (1.0, True, "1", [1]):
+        env = msgpack.unpackb(enc(shield_req()), raw=False)
+        env["v"] = v
+        assert reason_of(msgpack.packb(env, use_bin_type=True)) == "version"
+
+
+def test_error_details_stay_short_for_huge_or_nested_values():
+    nested = 0
+    for _ in range(4):                                  # within MAX_DEPTH, 3**4 leaves
+        nested = [nested] * 3
+    for bad in (nested, "f" * 60000, b"\x00" * 60000, list(range(1000))):
+        env = msgpack.unpackb(enc(shield_req()), raw=False)
+        env["body"]["a_prop"]["nd"] = bad
+        with pytest.raises(wire.WireError) as e:
+            wire.decode(msgpack.packb(env, use_bin_type=True), run_id=RUN)
+        assert e.value.reason == "dtype" and len(str(e.value)) < 200, str(e.value)
+    env = msgpack.unpackb(enc(shield_req()), raw=False)
+    env[b"k"] = 1                                                       # str and bytes keys mixed
+    assert reason_of(msgpack.packb(env, use_bin_type=True)) == "envelope"

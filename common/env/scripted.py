@@ -13,7 +13,7 @@ from common.env.config import EnvConfig
 from common.env.geometry import from_frame, to_frame, wrap
 from common.env.layout import FACING, GRASP_LOCAL
 from common.env.observations import Snapshot
-from common.spec import JOINT_ACT_DIM, N_CARRIERS
+from common.spec import JOINT_ACT_DIM
 
 
 def scripted_actions(snap: Snapshot, cfg: EnvConfig, speed: float = 0.85, max_turn: float = 0.05):

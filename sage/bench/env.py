@@ -10,6 +10,7 @@ from common.env.batch_env import BatchEnv
 from common.env.config import EnvConfig
 from common.env.metrics import aggregate
 from common.env.scenarios import SCENARIOS
+from sage.errors import nonneg_int, positive_int
 
 
 def bench_env(scenario: str = "maze", num_envs: int = 16, steps: int = 100, seed: int = 0,
@@ -104,17 +105,17 @@ def register(commands, bench) -> None:
     b = bench.add_parser("env", help="env control steps/s vs raw mujoco.rollout physics bound")
     b.add_argument("--json", action="store_true")
     b.add_argument("--scenario", choices=sorted(SCENARIOS), default="maze")
-    b.add_argument("--num-envs", type=int, default=16)
-    b.add_argument("--steps", type=int, default=100)
-    b.add_argument("--seed", type=int, default=0)
-    b.add_argument("--repeats", type=int, default=5, help="timed rounds; medians are reported")
+    b.add_argument("--num-envs", type=positive_int, default=16)
+    b.add_argument("--steps", type=positive_int, default=100)
+    b.add_argument("--seed", type=nonneg_int, default=0)
+    b.add_argument("--repeats", type=positive_int, default=5, help="timed rounds; medians are reported")
     b.add_argument("--scripted", action="store_true", help="also report scripted success rates")
-    b.add_argument("--episodes", type=int, default=20)
+    b.add_argument("--episodes", type=positive_int, default=20)
     b.set_defaults(func=_bench_env)
 
     s = bench.add_parser("scripted", help="scripted reference controller success rate per scenario")
     s.add_argument("--json", action="store_true")
-    s.add_argument("--episodes", type=int, default=20)
+    s.add_argument("--episodes", type=positive_int, default=20)
     s.add_argument("--scenario", choices=sorted(SCENARIOS), default=None)
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=nonneg_int, default=0)
     s.set_defaults(func=_bench_scripted)

@@ -13,6 +13,7 @@ from common.algos.config import AlgoConfig
 from common.algos.methods import make_method
 from common.algos.synthetic import BanditTask, collect
 from common.env.observations import OBS_DIM
+from sage.errors import nonneg_int, positive_int
 
 BENCH_METHODS = ("happo", "sail_cbf", "talo_cbf", "sage")
 
@@ -68,13 +69,13 @@ def register(commands, bench) -> None:
     p = bench.add_parser(
         "learner", help="seconds per learner update for happo, sail_cbf, talo_cbf, sage (ratios to happo)")
     p.add_argument("--json", action="store_true", help="print JSON")
-    p.add_argument("--T", type=int, default=64, help="rollout length per env")
-    p.add_argument("--K", type=int, default=32, help="envs per batch")
-    p.add_argument("--obs-dim", type=int, default=None, help="default: the env's obs_dim (else 40)")
-    p.add_argument("--rows", type=int, default=34, help="safety rows M")
-    p.add_argument("--repeats", type=int, default=3, help="timed updates per method (median)")
-    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--T", type=positive_int, default=64, help="rollout length per env")
+    p.add_argument("--K", type=positive_int, default=32, help="envs per batch")
+    p.add_argument("--obs-dim", type=positive_int, default=None, help="default: the env's obs_dim (else 40)")
+    p.add_argument("--rows", type=positive_int, default=34, help="safety rows M")
+    p.add_argument("--repeats", type=positive_int, default=3, help="timed updates per method (median)")
+    p.add_argument("--threads", type=positive_int, default=1, help="torch intra-op threads")
+    p.add_argument("--seed", type=nonneg_int, default=0)
     p.set_defaults(func=_bench_handler)
 
 

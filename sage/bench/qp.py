@@ -17,6 +17,7 @@ import numpy as np
 
 from common.shield.qp import BACKENDS, DEFAULT_BACKEND, qp_violation, solve_cbf_qp
 from common.shield.random_problems import random_cbf_problems
+from sage.errors import nonneg_int, positive_int
 
 TARGET_US_PER_QP = 20.0  # issue 2: default backend, batch 256, one core
 
@@ -119,8 +120,6 @@ def run_qp_bench(cfg: QPBenchConfig) -> dict:
 
 def _handler(args: argparse.Namespace) -> int:
     cfg = QPBenchConfig(batch=args.batch, rows=args.rows, repeats=args.repeats, seed=args.seed)
-    if cfg.batch < 1 or cfg.rows < 1 or cfg.repeats < 1:
-        raise SystemExit("sage bench qp: --batch, --rows and --repeats must be positive")
     out = run_qp_bench(cfg)
     if args.json:
         print(json.dumps(out, indent=2))
@@ -147,8 +146,8 @@ def register(commands, bench) -> None:
     p = bench.add_parser("qp", help="joint CBF-QP shield: us per QP per backend vs a fresh-OSQP loop")
     defaults = QPBenchConfig()
     p.add_argument("--json", action="store_true", help="print JSON")
-    p.add_argument("--batch", type=int, default=defaults.batch, help="QPs per batch")
-    p.add_argument("--rows", type=int, default=defaults.rows, help="safety rows M per QP")
-    p.add_argument("--repeats", type=int, default=defaults.repeats, help="timed batches (default backend)")
-    p.add_argument("--seed", type=int, default=defaults.seed)
+    p.add_argument("--batch", type=positive_int, default=defaults.batch, help="QPs per batch")
+    p.add_argument("--rows", type=positive_int, default=defaults.rows, help="safety rows M per QP")
+    p.add_argument("--repeats", type=positive_int, default=defaults.repeats, help="timed batches (default backend)")
+    p.add_argument("--seed", type=nonneg_int, default=defaults.seed)
     p.set_defaults(func=_handler)

@@ -41,13 +41,16 @@ import msgpack
 import numpy as np
 
 from common import keys, wire
+from common.algos.registry import METHODS
 from common.env.batch_env import BatchEnv
+from common.env.scenarios import SCENARIOS
 from common.safety_rows import SafetyRows
 from common.shield.qp import shield_actions
 from common.spec import JOINT_ACT_DIM
 from common.transport import Bus
 from deploy.sage_run import router_spec, service_specs
 from deploy.supervisor import ServiceSpec, Supervisor, SupervisorConfig, free_tcp_port
+from sage.errors import UsageError, int_list, positive_float, positive_int, user_input
 from services.actor.service import ActorService
 from services.base import run_entry
 from services.config import TrainConfig
@@ -153,7 +156,7 @@ class LocalQPActor(ActorService):
         t0 = time.perf_counter()
         res = shield_actions(a_prop, rows, backend=self.cfg.shield.backend)
         self.rtt.add(time.perf_counter() - t0)
-        return np.asarray(res.a_exec, dtype=np.float64)
+        return np.asarray(res.a_exec, dtype=np.float64), res.status
 
 
 def ack_key(run_id: str) -> str:
@@ -516,12 +519,13 @@ def register(commands, bench) -> None:
     p = bench.add_parser("system", help="distributed throughput/latency vs in-process (shield RTT, params, steps/s)")
     p.add_argument("--json", action="store_true", help="print the result as JSON (default: a short table)")
     p.add_argument("--quick", action="store_true", help="smallest run (CI smoke): 1 actor, 2 batch sizes, 2 s windows")
-    p.add_argument("--scenario", default=d.scenario)
-    p.add_argument("--method", default=d.method)
-    p.add_argument("--envs-per-actor", type=int, default=d.envs_per_actor)
+    p.add_argument("--scenario", default=d.scenario, choices=sorted(SCENARIOS))
+    p.add_argument("--method", default=d.method, choices=METHODS)
+    p.add_argument("--envs-per-actor", type=positive_int, default=d.envs_per_actor)
     p.add_argument("--actors", default=",".join(map(str, d.actor_counts)), help="actor counts, e.g. 1,2")
     p.add_argument("--batch-sizes", default=",".join(map(str, d.batch_sizes)))
-    p.add_argument("--seconds", type=float, default=d.measure_s, help="steady-state window per throughput figure")
+    p.add_argument("--seconds", type=positive_float, default=d.measure_s,
+                   help="steady-state window per throughput figure")
     p.add_argument("--work-dir", default=None, help="keep run dirs and service logs here (default: a temp dir)")
     p.add_argument("--out", default=None, help="also write the JSON to this file")
     p.set_defaults(func=cmd_bench_system)
@@ -529,8 +533,8 @@ def register(commands, bench) -> None:
 
 def config_from_args(args) -> SystemBenchConfig:
     cfg = SystemBenchConfig(scenario=args.scenario, method=args.method, envs_per_actor=args.envs_per_actor,
-                            actor_counts=tuple(int(x) for x in args.actors.split(",") if x.strip()),
-                            batch_sizes=tuple(int(x) for x in args.batch_sizes.split(",") if x.strip()),
+                            actor_counts=tuple(int_list(args.actors, minimum=1, name="--actors")),
+                            batch_sizes=tuple(int_list(args.batch_sizes, minimum=1, name="--batch-sizes")),
                             measure_s=args.seconds)
     if args.quick:
         cfg = replace(cfg, **QUICK)
@@ -538,11 +542,12 @@ def config_from_args(args) -> SystemBenchConfig:
 
 
 def cmd_bench_system(args) -> int:
-    try:
+    with user_input():
         cfg = config_from_args(args)
-    except ValueError as exc:
-        print(f"sage bench system: {exc}", file=sys.stderr)
-        return 2
+    if args.work_dir and Path(args.work_dir).exists() and not Path(args.work_dir).is_dir():
+        raise UsageError(f"--work-dir {args.work_dir} exists and is not a directory")
+    if args.out and Path(args.out).is_dir():
+        raise UsageError(f"--out {args.out} is a directory; give a file name")
     work = Path(args.work_dir) if args.work_dir else Path(tempfile.mkdtemp(prefix="sage-bench-system-"))
     result = SystemBench(cfg, work).run()
     result["work_dir"] = str(work)

