@@ -20,7 +20,7 @@ from common.env.scenarios import SCENARIOS
 from common.evaluation.deployment import evaluate_policy
 from common.rundir import RunDir, atomic_write_text
 from deploy.sage_run import METRICS_OFFSETS, default_actor_count, parse_ids, run_supervised
-from deploy.supervisor import EXIT_GAVE_UP
+from deploy.supervisor import EXIT_GAVE_UP, SupervisorConfig
 from sage.errors import UsageError, nonneg_int, one_line, port, positive_float, positive_int, user_input
 from sage.runs import last_progress, load_run, read_config
 from services.config import FINAL_EVAL_SEED, TrainConfig
@@ -277,6 +277,9 @@ def add_up_arguments(p: argparse.ArgumentParser) -> None:
                    help="Zenoh router endpoint, e.g. tcp/10.0.0.1:7447 (repeatable; default: start a local router)")
     p.add_argument("--metrics-base", type=port, default=None,
                    help="Prometheus ports: base learner, base+1 shield, base+10+i actor i (e.g. 9400; 0 = off)")
+    p.add_argument("--restart-budget", type=nonneg_int, default=SupervisorConfig().restart_budget,
+                   help="restarts of one service allowed within the supervisor's window before it gives up "
+                        "(raise it for chaos runs, actor.chaos_crash_prob)")
     fresh = p.add_argument_group("fresh run (without --config)")
     fresh.add_argument("--scenario", default=None, choices=sorted(SCENARIOS))
     fresh.add_argument("--method", default=None, choices=METHODS)
@@ -340,7 +343,8 @@ def cmd_up(args) -> int:
                              f"ids 0..{cfg.actors - 1}")
     path = save_run_config(cfg, RunDir(cfg.run_dir))
     try:
-        return run_supervised(path, roles=roles, actor_ids=ids)
+        return run_supervised(path, roles=roles, actor_ids=ids,
+                              supervisor=SupervisorConfig(restart_budget=args.restart_budget))
     except RuntimeError as exc:  # e.g. the local router never came up
         print(f"sage up: {exc}", file=sys.stderr)
         return EXIT_GAVE_UP
