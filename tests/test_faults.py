@@ -6,11 +6,11 @@ from the chunks) must find 0 unfiltered actions; and chunks that never reached a
 update must be counted (per-actor sequence gaps), never silently lost."""
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -28,6 +28,19 @@ def _config(run: Path, **kw) -> Path:
                       chunk_len=8, updates=60, status_period_s=0.25, eval_episodes=0, checkpoint_every=2,
                       deploy_probe_every=0, algo={"epochs": 1, "minibatches": 1, "critic_hidden": 32}, **kw)
     return cfg.resolve().save(run / "config.json")
+
+
+@contextlib.contextmanager
+def _sage_up(*args: str):
+    """`sage up ARGS` as a child; never left running, whatever the test does."""
+    proc = subprocess.Popen([PY, "-m", "sage", "up", *args], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
 
 
 def _metrics(run: Path) -> list[dict]:
@@ -58,10 +71,8 @@ def _check_run(run: Path, proc: subprocess.Popen, out: str) -> dict:
 
 def test_kill_9_of_each_service_in_turn(tmp_path):
     run = tmp_path / "faults"
-    proc = subprocess.Popen([PY, "-m", "sage", "up", "--config", str(_config(run))], cwd=ROOT,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     killed = []
-    try:
+    with _sage_up("--config", str(_config(run))) as proc:
         for victim in ("actor-1", "shield", "learner", "router"):
             v0 = wait_for(lambda: _version(run) >= 2 and _version(run), 120, f"training before killing {victim}")
             pid = _status(run)["services"][victim]["pid"]
@@ -71,10 +82,6 @@ def test_kill_9_of_each_service_in_turn(tmp_path):
             # training goes on after the restart (the learner resumes above its old versions)
             wait_for(lambda: _version(run) > v0 + 1, 120, f"progress after killing {victim}", 0.2)
         out, _ = proc.communicate(timeout=300)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
     ck = _check_run(run, proc, out)
     for victim, pid in killed:
         (crash,) = [e for e in events(run, "exit", victim) if e["pid"] == pid]
@@ -100,14 +107,8 @@ def test_chaos_actors_crash_at_random_and_the_run_reaches_its_budget(tmp_path):
     cfg = json.loads(path.read_text())
     cfg["actor"]["chaos_crash_prob"] = 1 / 150
     path.write_text(json.dumps(cfg))
-    proc = subprocess.Popen([PY, "-m", "sage", "up", "--config", str(path), "--restart-budget", "100"], cwd=ROOT,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
+    with _sage_up("--config", str(path), "--restart-budget", "100") as proc:
         out, _ = proc.communicate(timeout=300)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
     ck = _check_run(run, proc, out)
     chaos_exits = [e for e in events(run, "exit") if e["service"].startswith("actor-") and e["code"] == 86]
     assert len(chaos_exits) >= 1, "the chaos option did not fire"

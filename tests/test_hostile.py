@@ -36,6 +36,15 @@ def bus():
     b.close()
 
 
+def _started_actor(cfg, bus, stop, env, registry=None):
+    """An actor thread with the fake env and propose step, waiting for parameters."""
+    actor = ActorService(cfg, bus, 0, registry, stop=stop, env=env, propose=fake_propose)
+    th = threading.Thread(target=actor.run, daemon=True)
+    th.start()
+    wait_for(lambda: actor.state == "waiting")
+    return actor, th
+
+
 def _publish_params(bus, cfg, params=None, version=0, method=None):
     m = FakeMethod()
     body = {"version": version, "incarnation": "inc", "method": method or cfg.method,
@@ -78,12 +87,8 @@ def test_forged_shield_alone_gets_nothing_executed(tmp_path, bus, forger):
     cfg = make_cfg(tmp_path, actor=ActorConfig(shield_timeout_s=0.1, unhealthy_after_s=30))
     stop = threading.Event()
     _forged_shield(bus, cfg, forger[1], stop)
-    env = FakeBatchEnv(2)
-    reg = CollectorRegistry()
-    actor = ActorService(cfg, bus, 0, reg, stop=stop, env=env, propose=fake_propose)
-    th = threading.Thread(target=actor.run, daemon=True)
-    th.start()
-    wait_for(lambda: actor.state == "waiting")
+    env, reg = FakeBatchEnv(2), CollectorRegistry()
+    actor, th = _started_actor(cfg, bus, stop, env, reg)
     _publish_params(bus, cfg)
     wait_for(lambda: sum(actor.answers_refused.values()) >= 5)
     stop.set()
@@ -102,10 +107,7 @@ def test_forged_shield_beside_the_real_one_is_harmless(tmp_path, bus):
     shield = ShieldService(cfg, bus, stop=stop, solve=fake_solve)
     threading.Thread(target=shield.run, daemon=True).start()
     env = FakeBatchEnv(2)
-    actor = ActorService(cfg, bus, 0, stop=stop, env=env, propose=fake_propose)
-    th = threading.Thread(target=actor.run, daemon=True)
-    th.start()
-    wait_for(lambda: actor.state == "waiting")
+    actor, th = _started_actor(cfg, bus, stop, env)
     _publish_params(bus, cfg)
     wait_for(lambda: len(env.executed) >= 40, timeout=30)
     stop.set()
@@ -139,12 +141,8 @@ def test_params_that_do_not_fit_the_trees_are_refused(tmp_path, bus):
     stop = threading.Event()
     shield = ShieldService(cfg, bus, stop=stop, solve=fake_solve)
     threading.Thread(target=shield.run, daemon=True).start()
-    env = FakeBatchEnv(2)
-    reg = CollectorRegistry()
-    actor = ActorService(cfg, bus, 0, reg, stop=stop, env=env, propose=fake_propose)
-    th = threading.Thread(target=actor.run, daemon=True)
-    th.start()
-    wait_for(lambda: actor.state == "waiting")
+    env, reg = FakeBatchEnv(2), CollectorRegistry()
+    actor, th = _started_actor(cfg, bus, stop, env, reg)
     good = FakeMethod().policy_params()
     bad_shape = dict(good, **{"carrier_1/K": np.zeros((2, 3, 99), np.float32)})
     _publish_params(bus, cfg, bad_shape, version=7)                   # passes the wire check only

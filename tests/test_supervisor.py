@@ -314,7 +314,7 @@ def test_supervised_run_survives_a_killed_actor(tmp_path):
     run = tmp_path / "run"
     cfg = TrainConfig(run_id="suptest", run_dir=str(run), method="happo_cbf", actors=2, envs_per_actor=2,
                       chunk_len=8, updates=100_000, status_period_s=0.25, eval_episodes=0,
-                      checkpoint_every=100_000, deploy_probe_every=0,   # this test is about restarts
+                      checkpoint_every=100_000, deploy_probe_every=3,   # probes pause the learner: restarts still work
                       algo={"epochs": 1, "minibatches": 1, "critic_hidden": 32})
     base = free_tcp_port()  # Prometheus: base learner, base+1 shield, base+10+i actor i
     cfg.ports.learner, cfg.ports.shield, cfg.ports.actor_base = base, base + 1, base + 10
