@@ -332,9 +332,11 @@ def test_supervised_run_survives_a_killed_actor(tmp_path):
                        for line in scraped[base + 10 + i].splitlines())
         victim = _status(run)["services"]["actor-1"]["pid"]
         os.kill(victim, signal.SIGKILL)
-        wait_for(lambda: events(run, "restart", "actor-1"), 30, "actor-1 restart")
-        new_pid = events(run, "start", "actor-1")[-1]["pid"]
-        assert new_pid != victim
+        # the supervisor logs "restart" and then, once the new process exists, its
+        # "start": wait for that one (reading between the two gave the old pid: the
+        # intermittent failure of this test)
+        new_pid = wait_for(lambda: [e["pid"] for e in events(run, "start", "actor-1") if e["pid"] != victim],
+                           30, "actor-1 restarted")[-1]
         # the restarted actor gets parameters and steps its environments again
         wait_for(lambda: _member(run, "actor/1").get("pid") == new_pid
                  and _member(run, "actor/1").get("env_steps", 0) > 0, 60, "restarted actor stepping", 0.2)
