@@ -24,7 +24,7 @@ from services.config import FINAL_EVAL_SEED
 def eval_record(e: dict) -> dict:
     """Map ``evaluate_policy`` output onto the report's result keys (+ stds)."""
     out = {k: e.get(k) for k in (
-        "success_rate", "return_mean", "col_per_1k", "drop_rate", "tilt", "heading_error",
+        "success_rate", "return_mean", "col_per_1k", "margin_col_per_1k", "drop_rate", "tilt", "heading_error",
         "height_error", "completion_time", "min_clearance", "progress_per_step")}
     for k in list(out):
         if f"{k}_std" in e:
@@ -81,7 +81,7 @@ def run_eval_command(args) -> int:
 def register(commands, bench) -> None:
     p = commands.add_parser("eval", help="deployment evaluation: hard trees + exact QP only")
     p.add_argument("checkpoint", help="run directory or checkpoint file")
-    p.add_argument("--episodes", type=positive_int, default=20)
+    p.add_argument("--episodes", type=positive_int, default=100)
     p.add_argument("--seed", type=nonneg_int, default=FINAL_EVAL_SEED,
                    help="evaluation seeds start here (disjoint from training)")
     p.add_argument("--scenario", default=None, choices=sorted(SCENARIOS), help="override the run's scenario")

@@ -8,6 +8,19 @@ Aggregation follows the paper: per-scenario cells are the mean over seeds,
 family rows are the mean of their scenarios, and the overall row is the mean
 ± standard deviation across runs (each run's deployment evaluation is one
 sample).
+
+Uncertainty: every cell that is a mean over runs carries a 95% percentile
+bootstrap confidence interval of that mean (``bootstrap_ci``: 10,000 resamples
+of the runs with replacement, a fresh ``numpy.random.default_rng(0)`` per cell,
+so a cell's interval does not depend on which other cells are present; family
+cells resample the seeds within each scenario, as the family mean is a mean of
+scenario means). Each headline comparison of the paper's abstract also gets the
+paired difference new − reference over the (scenario, seed) runs both methods
+have, with its bootstrap CI over those pairs (``paired_difference``). An
+interval needs at least two runs (two per scenario for a family cell; else it is
+NaN and not printed). With the few seeds of a suite the percentile bootstrap
+under-covers (its intervals are too narrow for n < ~10): read them as a lower
+bound on the uncertainty, and prefer more seeds to a finer interval method.
 """
 from __future__ import annotations
 
@@ -20,14 +33,14 @@ from typing import Iterable
 
 import numpy as np
 
-from common.algos.registry import METHOD_SPECS, METHODS
+from common.algos.registry import ALL_METHODS, METHOD_SPECS
 from common.env.scenarios import FAMILIES, SCENARIO_TITLES
 from sage.errors import UsageError, user_input
 
 METHOD_TITLES = {name: spec.title for name, spec in METHOD_SPECS.items()}
 # Keys every result's "eval" block carries (deployment evaluation).
 EVAL_KEYS = [
-    "success_rate", "return_mean", "col_per_1k", "drop_rate",
+    "success_rate", "return_mean", "col_per_1k", "margin_col_per_1k", "drop_rate",
     "proposal_violation", "proposal_violation_any_wall", "correction",
     "tilt", "heading_error", "height_error", "completion_time",
 ]
@@ -89,6 +102,104 @@ def cell(results: list[Result], method: str, scenario: str, key: str) -> float:
     return _mean([r.eval.get(key) for r in results if r.method == method and r.scenario == scenario])
 
 
+# ----------------------------------------------------------------- bootstrap statistics
+BOOTSTRAP_RESAMPLES = 10_000
+BOOTSTRAP_SEED = 0
+CI_LEVEL = 0.95
+
+
+def _finite_pairs(values, strata):
+    keep = [(float(v), g) for v, g in zip(values, strata)
+            if v is not None and not (isinstance(v, float) and math.isnan(v))]
+    return [v for v, _ in keep], [g for _, g in keep]
+
+
+def bootstrap_ci(values, strata=None, n_resamples: int = BOOTSTRAP_RESAMPLES, seed: int = BOOTSTRAP_SEED,
+                 level: float = CI_LEVEL) -> list[float]:
+    """Percentile bootstrap CI ``[lo, hi]`` of the mean of ``values`` (None/NaN dropped).
+
+    Each of ``n_resamples`` resamples draws len(values) values with replacement
+    (``rng.integers(0, n)``, one row of indices per resample, rng =
+    ``numpy.random.default_rng(seed)``) and takes their mean; the interval is the
+    (1-level)/2 and (1+level)/2 percentiles (numpy's linear interpolation) of those
+    means. With ``strata`` (one label per value) the statistic is the mean of the
+    per-stratum means and each stratum is resampled within itself (strata in sorted
+    label order). NaN unless every stratum has at least two values (a one-run stratum
+    has no spread to resample, and its zero-width contribution would narrow the interval).
+    """
+    strata = [0] * len(values) if strata is None else list(strata)
+    if len(strata) != len(values):
+        raise ValueError("one stratum label per value")
+    vals, labels = _finite_pairs(values, strata)
+    groups = [np.asarray([v for v, g in zip(vals, labels) if g == lab]) for lab in sorted(set(labels))]
+    if not groups or min(len(g) for g in groups) < 2:
+        return [float("nan"), float("nan")]
+    rng = np.random.default_rng(seed)
+    stat = np.zeros(n_resamples)
+    for g in groups:
+        stat += g[rng.integers(0, len(g), size=(n_resamples, len(g)))].mean(axis=1)
+    stat /= len(groups)
+    tail = 50.0 * (1.0 - level)
+    lo, hi = np.percentile(stat, [tail, 100.0 - tail])
+    return [float(lo), float(hi)]
+
+
+TRAIN_EXPOSURE_KEYS = ("train_col_per_1k", "train_drop_rate", "train_env_steps")
+CURVE_MEAN_KEYS = ("w_gap", "cos_ind_team")
+
+
+def run_value(r: Result, key: str) -> float:
+    """One run's value of a report key: its deployment eval, training exposure or curve mean."""
+    if key in TRAIN_EXPOSURE_KEYS:
+        return training_exposure(r)[key]
+    if key in CURVE_MEAN_KEYS:
+        return curve_mean(r, key)
+    v = r.eval.get(key)
+    return float("nan") if v is None else float(v)
+
+
+def paired_difference(results: list[Result], ref: str, new: str, key: str, relative: bool = True,
+                      n_resamples: int = BOOTSTRAP_RESAMPLES, seed: int = BOOTSTRAP_SEED,
+                      level: float = CI_LEVEL) -> dict:
+    """``new`` − ``ref`` on ``key`` over the (scenario, seed) runs both methods have (a run
+    repeated in the inputs counts once, as the mean of its copies; pairs with a NaN side are
+    dropped): ``n`` pairs, matched means ``from``/``to``, mean difference ``diff`` with its
+    percentile bootstrap ``ci`` over the pairs, and (``relative``) the relative reduction
+    ``100 (1 - mean(new) / mean(ref))`` with its CI from the same resamples (None when the
+    reference mean is 0 in the data or in some resample)."""
+    def by_run(method):
+        runs: dict = {}
+        for r in results:
+            if r.method == method:
+                runs.setdefault((r.scenario, r.seed), []).append(run_value(r, key))
+        return {k: _mean(v) for k, v in runs.items()}
+
+    a_runs, b_runs = by_run(ref), by_run(new)
+    keys = sorted(k for k in a_runs if k in b_runs and not (math.isnan(a_runs[k]) or math.isnan(b_runs[k])))
+    nan = float("nan")
+    out = {"n": len(keys), "from": nan, "to": nan, "diff": nan, "ci": [nan, nan]}
+    if relative:
+        out.update(reduction_pct=None, reduction_pct_ci=None)
+    if not keys:
+        return out
+    a = np.array([a_runs[k] for k in keys])
+    b = np.array([b_runs[k] for k in keys])
+    out.update({"from": float(a.mean()), "to": float(b.mean()), "diff": float((b - a).mean())})
+    if relative and a.mean() > 0:
+        out["reduction_pct"] = float(100.0 * (1.0 - b.mean() / a.mean()))
+    if len(keys) < 2:
+        return out
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, len(keys), size=(n_resamples, len(keys)))
+    tail = 50.0 * (1.0 - level)
+    q = [tail, 100.0 - tail]
+    out["ci"] = [float(x) for x in np.percentile((b - a)[idx].mean(axis=1), q)]
+    ra, rb = a[idx].mean(axis=1), b[idx].mean(axis=1)
+    if out.get("reduction_pct") is not None and np.all(ra > 0):
+        out["reduction_pct_ci"] = [float(x) for x in np.percentile(100.0 * (1.0 - rb / ra), q)]
+    return out
+
+
 def training_exposure(r: Result) -> dict:
     """Collision steps per 1000 env steps and drop rate over the whole training
     run, from the learner's per-update episode metrics (what the robots went
@@ -105,40 +216,44 @@ def training_exposure(r: Result) -> dict:
 
 def summarize(results: list[Result]) -> dict:
     """Nested summary: per scenario, per family, overall, for each method present."""
-    methods = [m for m in METHODS if any(r.method == m for r in results)]
+    methods = [m for m in ALL_METHODS if any(r.method == m for r in results)]
     scenarios = [s for fam in FAMILIES.values() for s in fam if any(r.scenario == s for r in results)]
     out: dict = {"methods": methods, "scenarios": {}, "families": {}, "overall": {}}
     for s in scenarios:
-        out["scenarios"][s] = {
-            m: {k: cell(results, m, s, k) for k in EVAL_KEYS} for m in methods
-        }
+        out["scenarios"][s] = {}
+        for m in methods:
+            runs = [r for r in results if r.method == m and r.scenario == s]
+            row = {k: cell(results, m, s, k) for k in EVAL_KEYS}
+            row["ci"] = {k: bootstrap_ci([r.eval.get(k) for r in runs]) for k in EVAL_KEYS}
+            out["scenarios"][s][m] = row
     for fam, members in FAMILIES.items():
         present = [s for s in members if s in out["scenarios"]]
         if not present:
             continue
-        out["families"][fam] = {
-            m: {k: _mean([out["scenarios"][s][m][k] for s in present]) for k in EVAL_KEYS}
-            for m in methods
-        }
+        out["families"][fam] = {}
+        for m in methods:
+            runs = [r for r in results if r.method == m and r.scenario in present]
+            row = {k: _mean([out["scenarios"][s][m][k] for s in present]) for k in EVAL_KEYS}
+            # the family mean is a mean of scenario means: resample seeds within each scenario
+            row["ci"] = {k: bootstrap_ci([r.eval.get(k) for r in runs], strata=[r.scenario for r in runs])
+                         for k in EVAL_KEYS}
+            out["families"][fam][m] = row
     for m in methods:
         runs = [r for r in results if r.method == m]
-        out["overall"][m] = {
-            k: {"mean": _mean([r.eval.get(k) for r in runs]), "std": _std([r.eval.get(k) for r in runs])}
-            for k in EVAL_KEYS
-        }
+        out["overall"][m] = {}
+        for k in EVAL_KEYS + list(TRAIN_EXPOSURE_KEYS) + list(CURVE_MEAN_KEYS):
+            vals = [run_value(r, k) for r in runs]
+            out["overall"][m][k] = {"mean": _mean(vals), "std": _std(vals), "ci": bootstrap_ci(vals)}
         out["overall"][m]["runs"] = len(runs)
-        exposure = [training_exposure(r) for r in runs]
-        for k in ("train_col_per_1k", "train_drop_rate", "train_env_steps"):
-            out["overall"][m][k] = {"mean": _mean([e[k] for e in exposure]), "std": _std([e[k] for e in exposure])}
-        for k in ("w_gap", "cos_ind_team"):
-            out["overall"][m][k] = {"mean": _mean([curve_mean(r, k) for r in runs]),
-                                    "std": _std([curve_mean(r, k) for r in runs])}
-    out["train_scenarios"] = {
-        s: {m: {"train_col_per_1k": _mean([training_exposure(r)["train_col_per_1k"] for r in results
-                                           if r.method == m and r.scenario == s])} for m in methods}
-        for s in scenarios
-    }
-    out["headline"] = headline(out)
+    out["train_scenarios"] = {}
+    for s in scenarios:
+        out["train_scenarios"][s] = {}
+        for m in methods:
+            vals = [training_exposure(r)["train_col_per_1k"] for r in results if r.method == m and r.scenario == s]
+            out["train_scenarios"][s][m] = {"train_col_per_1k": _mean(vals), "ci": bootstrap_ci(vals)}
+    out["bootstrap"] = {"method": "percentile", "level": CI_LEVEL, "resamples": BOOTSTRAP_RESAMPLES,
+                        "seed": BOOTSTRAP_SEED, "unit": "runs (pairs matched on (scenario, seed) for differences)"}
+    out["headline"] = headline(out, results)
     return out
 
 
@@ -154,35 +269,46 @@ def _change(ref: float, new: float) -> dict:
     return {"from": ref, "to": new, "reduction_pct": red}
 
 
-def headline(summary: dict) -> dict:
+def headline(summary: dict, results: list[Result] | None = None) -> dict:
     """The comparisons the paper's abstract and Sec. IV quote, from this suite's overall rows:
     the shield's collision reduction and SR cost (HAPPO -> HAPPO+CBF), SAGE's SR recovery and
     DR change (HAPPO+CBF -> SAGE+CBF), SAIL's proposal-violation and correction reduction
     (HAPPO+CBF -> SAIL+CBF) and TALO's W_gap reduction (SAIL+CBF -> SAGE+CBF, same
-    tree-SAIL proposal graph; training means)."""
+    tree-SAIL proposal graph; training means); plus SAGE+CBF's overall SR and Col./1k with
+    their CIs. With ``results`` every comparison also carries ``paired``: the paired
+    difference over matched (scenario, seed) runs with its bootstrap CI
+    (``paired_difference``)."""
     o = summary["overall"]
 
     def get(m, k):
         return o[m][k]["mean"]
 
+    def comp(ref, new, key, change=True):
+        c = _change(get(ref, key), get(new, key)) if change else {"from": get(ref, key), "to": get(new, key)}
+        if results is not None:
+            c["paired"] = paired_difference(results, ref, new, key, relative=change)
+        return c
+
     out = {}
+    if "sage" in o:
+        out["sage_overall"] = {k: {"mean": o["sage"][k]["mean"], "ci": o["sage"][k]["ci"], "runs": o["sage"]["runs"]}
+                               for k in ("success_rate", "col_per_1k")}
     if "happo" in o and "happo_cbf" in o:
         out["shield"] = {
-            "col_per_1k": _change(get("happo", "col_per_1k"), get("happo_cbf", "col_per_1k")),
-            "train_col_per_1k": _change(get("happo", "train_col_per_1k"), get("happo_cbf", "train_col_per_1k")),
-            "success_rate": {"from": get("happo", "success_rate"), "to": get("happo_cbf", "success_rate")},
+            "col_per_1k": comp("happo", "happo_cbf", "col_per_1k"),
+            "train_col_per_1k": comp("happo", "happo_cbf", "train_col_per_1k"),
+            "success_rate": comp("happo", "happo_cbf", "success_rate", change=False),
         }
     if "happo_cbf" in o and "sage" in o:
         out["sage_vs_shield"] = {
-            "success_rate": {"from": get("happo_cbf", "success_rate"), "to": get("sage", "success_rate")},
-            "drop_rate": {"from": get("happo_cbf", "drop_rate"), "to": get("sage", "drop_rate")},
+            "success_rate": comp("happo_cbf", "sage", "success_rate", change=False),
+            "drop_rate": comp("happo_cbf", "sage", "drop_rate", change=False),
         }
     if "happo_cbf" in o and "sail_cbf" in o:
-        out["sail"] = {k: _change(get("happo_cbf", k), get("sail_cbf", k))
-                       for k in ("proposal_violation", "correction")}
+        out["sail"] = {k: comp("happo_cbf", "sail_cbf", k) for k in ("proposal_violation", "correction")}
     if "sail_cbf" in o and "sage" in o:
-        out["talo"] = {"w_gap": _change(get("sail_cbf", "w_gap"), get("sage", "w_gap")),
-                       "cos_ind_team": {"from": get("sail_cbf", "cos_ind_team"), "to": get("sage", "cos_ind_team")}}
+        out["talo"] = {"w_gap": comp("sail_cbf", "sage", "w_gap"),
+                       "cos_ind_team": comp("sail_cbf", "sage", "cos_ind_team", change=False)}
     return out
 
 
@@ -196,31 +322,68 @@ def headline_markdown(h: dict) -> list[str]:
     def arrow(c, digits=1, scale=1.0, unit=""):   # "from → to" of one comparison
         return f"{_fmt(c['from'], digits, scale)}{unit} → {_fmt(c['to'], digits, scale)}{unit}"
 
+    def paired(name, c, digits=1, scale=1.0, unit=""):   # "name Δ d [lo, hi]" of the matched runs
+        p = c.get("paired")
+        if not p or not p["n"]:
+            return f"{name}: no matched runs"
+        d = p["diff"] * scale
+        text = f"{name} Δ {'–' if math.isnan(d) else f'{d:+.{digits}f}'}{unit}{_ci(p['ci'], digits, scale)}"
+        if p.get("reduction_pct_ci"):
+            lo, hi = p["reduction_pct_ci"]
+            text += f" (reduction {p['reduction_pct']:.1f}% [{lo:.1f}, {hi:.1f}])"
+        return text
+
+    def pairs(items):   # sub-bullet: the paired differences of one headline entry
+        ns = {c["paired"]["n"] for _, c, *_ in items if "paired" in c}
+        if not ns:
+            return []
+        n = "/".join(str(x) for x in sorted(ns))
+        return [f"  - paired over {n} matched (scenario, seed) runs, new − reference [95% bootstrap CI]: "
+                + "; ".join(paired(*item) for item in items) + "."]
+
     lines = []
+    if "sage_overall" in h:
+        so = h["sage_overall"]
+        lines.append(f"- SAGE+CBF overall ({so['success_rate']['runs']} runs): SR "
+                     f"{_fmt(so['success_rate']['mean'], 1, 100)}%{_ci(so['success_rate']['ci'], 1, 100)}; "
+                     f"Col./1k {_fmt(so['col_per_1k']['mean'], 2)}{_ci(so['col_per_1k']['ci'], 2)}.")
     if "shield" in h:
         sh = h["shield"]
         lines.append(f"- Exact CBF filtering (HAPPO → HAPPO+CBF): deployment Col./1k {arrow(sh['col_per_1k'], 2)} "
                      f"({red(sh['col_per_1k'])}); during training {arrow(sh['train_col_per_1k'], 2)} "
                      f"({red(sh['train_col_per_1k'])}); SR {arrow(sh['success_rate'], scale=100, unit='%')}.")
+        lines += pairs([("Col./1k", sh["col_per_1k"], 2), ("training Col./1k", sh["train_col_per_1k"], 2),
+                            ("SR", sh["success_rate"], 1, 100, " pp")])
     if "sage_vs_shield" in h:
         sv = h["sage_vs_shield"]
         gain = (sv["success_rate"]["to"] - sv["success_rate"]["from"]) * 100
         lines.append(f"- SAGE+CBF vs HAPPO+CBF: SR {arrow(sv['success_rate'], scale=100, unit='%')} ({gain:+.1f} pp); "
                      f"DR {arrow(sv['drop_rate'], scale=100, unit='%')}.")
+        lines += pairs([("SR", sv["success_rate"], 1, 100, " pp"), ("DR", sv["drop_rate"], 1, 100, " pp")])
     if "sail" in h:
         sa = h["sail"]
         lines.append(f"- SAIL (HAPPO+CBF → SAIL+CBF): proposal violation "
                      f"{arrow(sa['proposal_violation'], scale=100, unit='%')} ({red(sa['proposal_violation'])}); "
                      f"correction {arrow(sa['correction'], 3)} ({red(sa['correction'])}).")
+        lines += pairs([("proposal violation", sa["proposal_violation"], 1, 100, " pp"),
+                            ("correction", sa["correction"], 3)])
     if "talo" in h:
         ta = h["talo"]
         lines.append(f"- TALO (SAIL+CBF → SAGE+CBF, training means): W_gap {arrow(ta['w_gap'], 3)} "
                      f"({red(ta['w_gap'])}); cos(g_ind, g_team) {arrow(ta['cos_ind_team'], 3)}.")
+        lines += pairs([("W_gap", ta["w_gap"], 3), ("cos(g_ind, g_team)", ta["cos_ind_team"], 3)])
     return lines
 
 
 def _fmt(x: float, digits: int = 1, scale: float = 1.0) -> str:
     return "–" if x is None or math.isnan(x) else f"{x * scale:.{digits}f}"
+
+
+def _ci(ci, digits: int = 1, scale: float = 1.0) -> str:
+    """' [lo, hi]' of a bootstrap CI, or '' when there is none (fewer than two runs)."""
+    if not ci or any(x is None or math.isnan(x) for x in ci):
+        return ""
+    return f" [{_fmt(ci[0], digits, scale)}, {_fmt(ci[1], digits, scale)}]"
 
 
 def table_markdown(summary: dict) -> str:
@@ -229,49 +392,63 @@ def table_markdown(summary: dict) -> str:
     head = "| Family | Scenario | " + " | ".join(
         f"{METHOD_TITLES[m]} SR | {METHOD_TITLES[m]} Col./1k" for m in methods) + " |"
     sep = "|" + "---|" * (2 + 2 * len(methods))
-    lines = ["### Per scenario (SR in %, Col./1k in collision steps per 1000 env steps)", "", head, sep]
+    lines = ["### Per scenario (SR in %, Col./1k in collision steps per 1000 env steps; mean over seeds "
+             "[95% bootstrap CI], family rows: mean of the scenario means)", "", head, sep]
+
+    def sr_col(cell, bold=""):
+        ci = cell.get("ci", {})
+        return (f"{bold}{_fmt(cell['success_rate'], scale=100)}{bold}{_ci(ci.get('success_rate'), 1, 100)} | "
+                f"{bold}{_fmt(cell['col_per_1k'])}{bold}{_ci(ci.get('col_per_1k'))}")
+
     for fam, members in FAMILIES.items():
         for s in members:
             if s not in summary["scenarios"]:
                 continue
             row = summary["scenarios"][s]
-            lines.append(f"| {fam} | {SCENARIO_TITLES[s]} | " + " | ".join(
-                f"{_fmt(row[m]['success_rate'], scale=100)} | {_fmt(row[m]['col_per_1k'])}" for m in methods) + " |")
+            lines.append(f"| {fam} | {SCENARIO_TITLES[s]} | " + " | ".join(sr_col(row[m]) for m in methods) + " |")
         if fam in summary["families"]:
             row = summary["families"][fam]
-            lines.append(f"| {fam} | **{fam} mean** | " + " | ".join(
-                f"**{_fmt(row[m]['success_rate'], scale=100)}** | **{_fmt(row[m]['col_per_1k'])}**" for m in methods) + " |")
-    lines += ["", "### Overall (mean ± std across runs)", "",
-              "| Method | Runs | SR (%) | Return | Col./1k | DR (%) | Proposal viol. (%) | of which wall rows (%) "
-              "| Correction |",
-              "|---|---|---|---|---|---|---|---|---|"]
+            lines.append(f"| {fam} | **{fam} mean** | " + " | ".join(sr_col(row[m], "**") for m in methods) + " |")
+    lines += ["", "### Overall (mean ± std across runs [95% bootstrap CI of the mean])", "",
+              "| Method | Runs | SR (%) | Return | Col./1k (contact) | Col./1k (margin) | DR (%) | Proposal viol. (%) "
+              "| of which wall rows (%) | Correction |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
     for m in methods:
         o = summary["overall"][m]
 
         def pm(key, scale=1.0, digits=1):
-            return f"{_fmt(o[key]['mean'], digits, scale)} ± {_fmt(o[key]['std'], digits, scale)}"
+            return (f"{_fmt(o[key]['mean'], digits, scale)} ± {_fmt(o[key]['std'], digits, scale)}"
+                    f"{_ci(o[key].get('ci'), digits, scale)}")
         viol = pm("proposal_violation", 100) if METHOD_SPECS[m].shielded else "N/A"
         wall_viol = pm("proposal_violation_any_wall", 100) if METHOD_SPECS[m].shielded else "N/A"
         corr = pm("correction", 1, 3) if METHOD_SPECS[m].shielded else "N/A"
         lines.append(f"| {METHOD_TITLES[m]} | {o['runs']} | {pm('success_rate', 100)} | {pm('return_mean', 1, 2)} | "
-                     f"{pm('col_per_1k')} | {pm('drop_rate', 100)} | {viol} | {wall_viol} | {corr} |")
+                     f"{pm('col_per_1k')} | {pm('margin_col_per_1k')} | {pm('drop_rate', 100)} | {viol} | {wall_viol} "
+                     f"| {corr} |")
     if summary.get("headline"):
         lines += ["", "### Headline comparisons (the quantities of the paper's abstract, from the rows above)", ""]
         lines += headline_markdown(summary["headline"])
+        b = summary.get("bootstrap")
+        if b:
+            lines += ["", f"CIs: {100 * b['level']:.0f}% {b['method']} bootstrap, {b['resamples']:,} resamples of the "
+                          f"runs (of the matched (scenario, seed) pairs for a Δ), seed {b['seed']}; none with fewer "
+                          "than two runs (per scenario, for a family mean)."]
     if summary.get("train_scenarios"):
         lines += ["", "### Col./1k during training, per scenario (same budget)", "",
                   "| Scenario | " + " | ".join(METHOD_TITLES[m] for m in methods) + " |",
                   "|" + "---|" * (1 + len(methods))]
         for s, row in summary["train_scenarios"].items():
             lines.append(f"| {SCENARIO_TITLES[s]} | " + " | ".join(
-                _fmt(row[m]["train_col_per_1k"], 2) for m in methods) + " |")
+                _fmt(row[m]["train_col_per_1k"], 2) + _ci(row[m].get("ci"), 2) for m in methods) + " |")
     lines += ["", "### During training (same budget; collision steps and drops the carriers went through while learning)", "",
               "| Method | Env steps | Col./1k | DR (%) |", "|---|---|---|---|"]
     for m in methods:
         o = summary["overall"][m]
         lines.append(f"| {METHOD_TITLES[m]} | {_fmt(o['train_env_steps']['mean'], 0)} | "
-                     f"{_fmt(o['train_col_per_1k']['mean'], 2)} ± {_fmt(o['train_col_per_1k']['std'], 2)} | "
-                     f"{_fmt(o['train_drop_rate']['mean'], 1, 100)} ± {_fmt(o['train_drop_rate']['std'], 1, 100)} |")
+                     f"{_fmt(o['train_col_per_1k']['mean'], 2)} ± {_fmt(o['train_col_per_1k']['std'], 2)}"
+                     f"{_ci(o['train_col_per_1k'].get('ci'), 2)} | "
+                     f"{_fmt(o['train_drop_rate']['mean'], 1, 100)} ± {_fmt(o['train_drop_rate']['std'], 1, 100)}"
+                     f"{_ci(o['train_drop_rate'].get('ci'), 1, 100)} |")
     return "\n".join(lines) + "\n"
 
 
@@ -304,7 +481,7 @@ def write_figures(results: list[Result], summary: dict, out_dir: Path) -> list[P
 
     out_dir.mkdir(parents=True, exist_ok=True)
     methods = summary["methods"]
-    colors = dict(zip(METHODS, ["#7f7f7f", "#1f77b4", "#2ca02c", "#ff7f0e", "#d62728"]))
+    colors = dict(zip(ALL_METHODS, ["#7f7f7f", "#1f77b4", "#2ca02c", "#ff7f0e", "#d62728", "#9467bd"]))
     written = []
 
     # Fig. main_sr: family-level SR (top) and Col./1k at deployment (middle) and during training

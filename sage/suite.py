@@ -19,7 +19,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from common.algos.registry import METHODS
+from common.algos.registry import ALL_METHODS, METHODS
 from common.env.scenarios import FAMILIES, SCENARIOS
 from common.rundir import RunDir, atomic_write_text, read_jsonl
 from sage.errors import UsageError, int_list, nonneg_int, positive_float, positive_int, user_input
@@ -39,7 +39,8 @@ class SuiteConfig:
     # where a wall-clock budget gives the slower updates fewer samples; both may be set
     # (whichever ends first).
     updates_per_run: int | None = None
-    eval_episodes: int = 20
+    # deployment episodes per run: >= 100 so a run's SR is graded (steps of 1%), not 0/100%
+    eval_episodes: int = 100
     envs_per_actor: int = 32
     train_overrides: list[str] = field(default_factory=list)   # `sage train --set` items
     workers: int = max(1, os.cpu_count() or 1)
@@ -58,9 +59,9 @@ class RunSpec:
 
 
 def plan(cfg: SuiteConfig) -> list[RunSpec]:
-    unknown = [m for m in cfg.methods if m not in METHODS]
+    unknown = [m for m in cfg.methods if m not in ALL_METHODS]
     if unknown or not cfg.methods:
-        raise ValueError(f"unknown methods {unknown}; choose from {', '.join(METHODS)}")
+        raise ValueError(f"unknown methods {unknown}; choose from {', '.join(ALL_METHODS)}")
     unknown = [s for s in cfg.scenarios if s not in SCENARIOS]
     if unknown or not cfg.scenarios:
         raise ValueError(f"unknown scenarios {unknown}; choose from {', '.join(sorted(SCENARIOS))}, "

@@ -15,7 +15,7 @@ import types
 import typing
 from pathlib import Path
 
-from common.algos.registry import METHODS, method_spec
+from common.algos.registry import ALL_METHODS, method_spec
 from common.env.scenarios import SCENARIOS
 from common.evaluation.deployment import evaluate_policy
 from common.rundir import RunDir, atomic_write_text
@@ -31,7 +31,7 @@ def register(commands, bench) -> None:
     d = TrainConfig()
     p = commands.add_parser("train", help="train a method with actor/shield/learner services")
     p.add_argument("--scenario", default=d.scenario, choices=sorted(SCENARIOS))
-    p.add_argument("--method", default=d.method, choices=METHODS)
+    p.add_argument("--method", default=d.method, choices=ALL_METHODS)
     p.add_argument("--updates", type=positive_int, default=None,
                    help=f"learner updates (budget; default {d.updates}, or unlimited when --minutes is given)")
     p.add_argument("--minutes", type=positive_float, default=d.minutes, help="wall-clock budget (whichever first)")
@@ -282,7 +282,7 @@ def add_up_arguments(p: argparse.ArgumentParser) -> None:
                         "(raise it for chaos runs, actor.chaos_crash_prob)")
     fresh = p.add_argument_group("fresh run (without --config)")
     fresh.add_argument("--scenario", default=None, choices=sorted(SCENARIOS))
-    fresh.add_argument("--method", default=None, choices=METHODS)
+    fresh.add_argument("--method", default=None, choices=ALL_METHODS)
     fresh.add_argument("--updates", type=positive_int, default=None)
     fresh.add_argument("--minutes", type=positive_float, default=None)
     fresh.add_argument("--envs-per-actor", type=positive_int, default=None)

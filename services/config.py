@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from common.algos.config import AlgoConfig
-from common.algos.registry import METHODS
+from common.algos.registry import ALL_METHODS
 from common.env.config import EnvConfig
 from common.keys import check_id
 from common.rundir import atomic_write_text
@@ -202,8 +202,8 @@ class TrainConfig:
             raise ValueError("actor.verify_tol must be > 0 and learner_queue_chunks >= 1")
         if self.actor.max_chunks_ahead < 1:
             raise ValueError(f"actor.max_chunks_ahead must be >= 1, got {self.actor.max_chunks_ahead}")
-        if self.method not in METHODS:
-            raise ValueError(f"method {self.method!r} not in {METHODS}")
+        if self.method not in ALL_METHODS:
+            raise ValueError(f"method {self.method!r} not in {ALL_METHODS}")
         if self.mode not in ("inprocess", "supervised"):
             raise ValueError(f"mode {self.mode!r} must be inprocess or supervised")
         for name in ("actors", "envs_per_actor", "chunk_len"):

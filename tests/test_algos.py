@@ -1,4 +1,4 @@
-"""The five learning methods (common/algos/methods.py) on synthetic batches."""
+"""The learning methods (common/algos/methods.py, Table I plus the joint_cbf ablation) on synthetic batches."""
 from __future__ import annotations
 
 import io
@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from common.algos import AlgoConfig, make_method
-from common.algos.registry import METHODS
+from common.algos.registry import ALL_METHODS
 from common.algos.synthetic import BanditTask, collect
 from common.algos.talo import individual_gradient, talo_gap, unflatten_like
 from common.policy.sail import SailConfig, sail_center_implicit, sail_project
@@ -28,7 +28,7 @@ def flat_params(method):
     return torch.cat([p.detach().reshape(-1).clone() for p in method.actor_params])
 
 
-@pytest.mark.parametrize("name", METHODS)
+@pytest.mark.parametrize("name", ALL_METHODS)
 def test_update_changes_parameters_and_reports(name):
     cfg = AlgoConfig(epochs=2, minibatches=2, critic_hidden=32, encoder_latent=8)
     m = make_method(name, cfg, OBS, 3 * OBS)
@@ -39,12 +39,18 @@ def test_update_changes_parameters_and_reports(name):
     assert not torch.equal(before, flat_params(m))
     assert any(not torch.equal(a, b) for a, b in zip(critic_before, m.critic.parameters()))
     for key in ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "w_gap",
-                "cos_ind_team", "tau", "kappa", "proposal_violation_rate", "correction_mean"):
+                "cos_ind_team", "w_gap_first", "w_gap_mean", "cos_ind_team_first", "cos_ind_team_mean",
+                "tau", "kappa", "proposal_violation_rate", "correction_mean", "correction_st",
+                "exec_minus_prop", "sail_residual", "actor_step_norm"):
         assert key in diag and np.isfinite(diag[key]), key
+    assert diag["w_gap"] == diag["w_gap_mean"] and diag["cos_ind_team"] == diag["cos_ind_team_mean"]
+    assert ("talo_condition_met" in diag) == m.uses_talo
+    assert ("happo_factor_std" in diag) == (not m.joint_step)
     # on-policy batch: learner's recomputed log-probs equal the actors' ones
     assert diag["logratio_at_start"] < 1e-5
     assert (diag["kappa"] > 0) == m.uses_sail
     assert m.shielded == (name != "happo")
+    assert (diag["sail_residual"] > 0) == m.uses_sail
     params = m.policy_params()
     assert params["carrier_0/W"].shape[1] == OBS
 

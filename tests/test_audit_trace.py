@@ -23,9 +23,11 @@ def rec():
 
 def test_recording_is_consistent_with_the_deployment_stack(rec):
     S = rec.n_steps
-    assert S == 60 and rec.n_episodes == 3 and rec.meta["unfinished"] == 0
+    lengths = [m["steps"] for m in rec.meta["episode_metrics"]]   # random trees may drop the payload early
+    assert S == sum(lengths) and rec.n_episodes == 3 and rec.meta["unfinished"] == 0
+    assert all(1 <= n <= 20 for n in lengths)
     for e in range(3):
-        assert rec.t[rec.episode == e].tolist() == list(range(20))
+        assert rec.t[rec.episode == e].tolist() == list(range(lengths[e]))
     a_st, leaves, nodes, sides = team_forward_np(rec.params, rec.obs)
     np.testing.assert_array_equal(leaves, rec.leaf)
     np.testing.assert_array_equal(nodes, rec.nodes)
@@ -40,7 +42,7 @@ def test_recording_is_consistent_with_the_deployment_stack(rec):
     assert (np.abs(rec.a_exec) <= 1 + 1e-12).all()
     assert ((rec.progress >= 0) & (rec.progress <= 1)).all()
     assert rec.payload_pose.shape == (S, 3) and np.isfinite(rec.payload_pose).all()
-    assert len(rec.meta["episode_metrics"]) == 3 and rec.meta["episode_metrics"][0]["steps"] == 20
+    assert len(rec.meta["episode_metrics"]) == 3
 
 
 def test_unshielded_recording_executes_the_clipped_tree_command():

@@ -39,7 +39,8 @@ def _assert_rows_equal(fast, ref):
         np.testing.assert_array_equal(fast[3][key], ref[3][key])
 
 
-CONFIGS = [S.SafetyConfig(), S.SafetyConfig(search_radius=5.0, walls_per_carrier=2, walls_per_point=3, max_rows=24),
+CONFIGS = [S.SafetyConfig(), S.SafetyConfig(profile="grasp"),
+           S.SafetyConfig(search_radius=5.0, walls_per_carrier=2, walls_per_point=3, max_rows=24, profile="grasp"),
            S.SafetyConfig(walls_per_carrier=0, walls_per_point=1, max_rows=10, alpha=1.0)]
 
 
@@ -58,12 +59,12 @@ def test_build_rows_ties_per_env_walls_and_edge_cases():
     geom = _geometry(rng, 5, 0.05)
     walls = SCENARIOS["maze"].walls_array()
     dup = np.concatenate([walls, walls])  # every distance tied with a later wall
-    cfg = S.SafetyConfig()
-    _assert_rows_equal(S.build_rows(geom, dup, cfg), S.build_rows_reference(geom, dup, cfg))
     per_env = np.stack([walls + rng.normal(0, 0.1, walls.shape) * [1, 1, 0, 0, 1] for _ in range(5)])
-    _assert_rows_equal(S.build_rows(geom, per_env, cfg), S.build_rows_reference(geom, per_env, cfg))
     none = np.zeros((0, 5))
-    _assert_rows_equal(S.build_rows(geom, none, cfg), S.build_rows_reference(geom, none, cfg))
+    for cfg in (S.SafetyConfig(), S.SafetyConfig(profile="grasp")):
+        _assert_rows_equal(S.build_rows(geom, dup, cfg), S.build_rows_reference(geom, dup, cfg))
+        _assert_rows_equal(S.build_rows(geom, per_env, cfg), S.build_rows_reference(geom, per_env, cfg))
+        _assert_rows_equal(S.build_rows(geom, none, cfg), S.build_rows_reference(geom, none, cfg))
     flat = S.SafetyGeometry(geom.carrier_xy, geom.carrier_yaw, geom.payload_xy, geom.payload_yaw,
                             PAYLOAD_POINTS_LOCAL, np.zeros((3, 2)), PAIR_REST)
     for fn in (S.build_rows, S.build_rows_reference):
@@ -105,14 +106,15 @@ def reference_env(monkeypatch):
     return patch
 
 
-KEYS_EXACT = ("row_mask", "fixed_mask", "terminated", "truncated", "collision", "drop", "success")
+KEYS_EXACT = ("row_mask", "fixed_mask", "terminated", "truncated", "collision", "margin_violation", "drop",
+              "success")
 KEYS_CLOSE = ("obs", "state", "C", "c", "human_action", "progress", "reward", "final_obs", "final_state")
 
 
-@pytest.mark.parametrize("name,human", [("maze", None), ("tilt_gate", 1)])
-def test_batch_env_matches_reference_path(name, human, reference_env, monkeypatch):
+@pytest.mark.parametrize("name,human,rows", [("maze", None, "paper"), ("tilt_gate", 1, "grasp")])
+def test_batch_env_matches_reference_path(name, human, rows, reference_env, monkeypatch):
     """Same seed and actions: every output of every step equals the numpy-reference env's."""
-    cfg = EnvConfig(name, human_slot=human, max_steps=40)
+    cfg = EnvConfig(name, human_slot=human, max_steps=40, safety_rows=rows)
     fast = batch_env.BatchEnv(cfg, num_envs=6, seed=5)
     rng = np.random.default_rng(0)
     acts = rng.uniform(-1.0, 1.0, (90, 6, 9))
@@ -144,7 +146,7 @@ def test_env_grasp_tol_sets_the_formation_rows():
     state a looser tolerance gives looser formation rows and leaves wall rows alone."""
     out = {}
     for tol in (0.05, 0.1):
-        env = batch_env.BatchEnv(EnvConfig(scenario="narrow_gate", grasp_tol=tol), 2, seed=4)
+        env = batch_env.BatchEnv(EnvConfig(scenario="narrow_gate", grasp_tol=tol, safety_rows="grasp"), 2, seed=4)
         assert env.safety_cfg.grasp_tol == tol
         out[tol] = env.reset()
     n_form = 2 * len(S.PAIRS)

@@ -100,18 +100,19 @@ def entity_point(geom, pred, kind, k, e):
 
 
 def is_upper(C, m):
-    """Formation rows fill the last 6 slots as (lower, upper) per pair."""
+    """Formation rows ("grasp" profile) fill the last 6 slots as (lower, upper) per pair."""
     return (C.shape[1] - 1 - m) % 2 == 0
 
 
+GRASP_ROWS = SafetyConfig(profile="grasp")   # the default split plus the formation rows
 BIG = SafetyConfig(max_rows=6 + 3 * 6 + 6 * 6, walls_per_carrier=6, walls_per_point=6,
-                   search_radius=50.0, alpha=0.3, carrier_radius=0.25, payload_margin=0.04)
+                   search_radius=50.0, alpha=0.3, carrier_radius=0.25, payload_margin=0.04, profile="grasp")
 
 
 # ----------------------------------------------------------------------------- rows = linearized predicted barrier
 
 @HYP
-@given(scenes(), st.sampled_from([SafetyConfig(), BIG]))
+@given(scenes(), st.sampled_from([SafetyConfig(), GRASP_ROWS, BIG]))
 def test_rows_equal_supporting_halfplane_of_predicted_barrier(scene, cfg):
     geom, walls, a = scene
     C, c, mask, info = build_rows(geom, walls, cfg)
@@ -310,7 +311,7 @@ def _simple_geom(K=1):
 
 
 def test_few_candidates_pad_with_masked_rows():
-    cfg = SafetyConfig(search_radius=0.5)
+    cfg = SafetyConfig(search_radius=0.5, profile="grasp")
     geom = _simple_geom()
     # one wall within reach of carrier 0 (h=0.45) and payload point (0.7, 0.55) (h=0.45) only
     walls = np.array([[1.3, 0.55, 0.1, 0.1, 0.0], [50.0, 50.0, 1.0, 1.0, 0.0]])
@@ -365,7 +366,7 @@ def test_many_candidates_keep_smallest_h(seed):
 @given(scenes())
 def test_barrier_values_match_reference_distances(scene):
     geom, walls, _ = scene
-    cfg = SafetyConfig()
+    cfg = GRASP_ROWS
     hv = barrier_values(geom, walls, cfg)
     for k in range(geom.num_envs):
         for w in range(len(walls)):
@@ -394,6 +395,8 @@ def test_per_env_walls_equal_shared_walls_and_no_walls():
     for x, y in zip(shared[:3], per_env[:3]):
         assert np.array_equal(x, y)
     C, c, mask, info = build_rows(geom, np.zeros((0, 5)), cfg)
+    assert mask.sum(1).tolist() == [0, 0]   # "paper": wall rows only
+    C, c, mask, info = build_rows(geom, np.zeros((0, 5)), GRASP_ROWS)
     assert mask.sum(1).tolist() == [6, 6]
     assert np.all(info["kind"][mask] == KIND_FORMATION)
 

@@ -7,9 +7,10 @@ from common.env.layout import PAIR_REST
 from common.evaluation.honesty import _PredictorWorld, measure_honesty, row_barriers
 
 
-def test_row_barrier_lookup_reproduces_row_h():
+@pytest.mark.parametrize("rows", ["paper", "grasp"])
+def test_row_barrier_lookup_reproduces_row_h(rows):
     """Looking each row's barrier up in barrier_values gives the h that build_rows reports."""
-    w = _PredictorWorld("chicane", num_envs=4, seed=3)
+    w = _PredictorWorld("chicane", num_envs=4, seed=3, safety_rows=rows)
     rng = np.random.default_rng(0)
     for _ in range(5):  # a few predictor steps so the formation is no longer at rest
         w.step(rng.uniform(-1, 1, (4, 9)) * 0.3)
@@ -18,10 +19,12 @@ def test_row_barrier_lookup_reproduces_row_h():
     looked_up = row_barriers(safety.barrier_values(geom, w.walls, w.cfg), info, w.cfg.max_rows)
     assert mask.any(1).all() and (info["kind"][mask] != safety.KIND_FORMATION).any()
     assert np.allclose(looked_up[mask], info["h"][mask], atol=1e-12)
+    assert (info["kind"][mask] == safety.KIND_FORMATION).any() == (rows == "grasp")
 
 
 def test_predictor_world_rows_hold_by_construction():
-    r = measure_honesty("narrow_gate", n_steps=60, seed=0, num_envs=6, world="predictor")
+    # the "grasp" profile, so the formation rows (lower conservative, upper first-order) are measured too
+    r = measure_honesty("narrow_gate", n_steps=60, seed=0, num_envs=6, world="predictor", safety_rows="grasp")
     print(f"\npredictor-world honesty narrow_gate: rate={r['rate']:.4f} row_rate={r['row_rate']}")
     assert r["active"] > 0 and r["row_count"]["carrier_wall"] > 0 and r["row_count"]["payload_wall"] > 0
     assert r["infeasible"] == 0 and r["rows_match"] == r["transitions"]
@@ -30,7 +33,7 @@ def test_predictor_world_rows_hold_by_construction():
         assert r["row_rate"][kind] == 1.0, kind
     assert r["unsafe_by"]["carrier_wall"] == 0 and r["unsafe_by"]["payload_wall"] == 0
     # the upper formation row is first-order: misses are at most |δ⊥|²/(2D) <= 4 s²/(D0_min - tol)
-    cfg = _PredictorWorld("narrow_gate", 1, 0).cfg
+    cfg = _PredictorWorld("narrow_gate", 1, 0, safety_rows="grasp").cfg
     bound = 4 * cfg.max_step_xy ** 2 / (PAIR_REST.min() - cfg.grasp_tol)
     assert r["min_next_h"] >= -bound
     assert r["rate"] >= 0.9

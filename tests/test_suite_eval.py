@@ -68,6 +68,8 @@ def test_eval_accepts_a_checkpoint_file(tiny_run, capsys):
 
 
 def test_proposal_violation_is_split_by_row_kind():
+    import dataclasses
+
     from common.evaluation.deployment import evaluate_policy
     from services.config import TrainConfig
     from services.learner.service import build_method
@@ -76,13 +78,20 @@ def test_proposal_violation_is_split_by_row_kind():
     params = build_method(cfg).policy_params()   # untrained trees: most proposals violate a row
     res = evaluate_policy(params, cfg.env_config(), 2, seed=3, shielded=True, max_steps=40)
     by_kind = res["proposal_violation_by_kind"]
+    # the default "paper" row profile has no formation rows, so no formation kind to count
+    assert res["safety_rows"] == "paper" and set(by_kind) == {"carrier_wall", "payload_wall", "any_wall"}
+    assert by_kind["any_wall"] == res["proposal_violation_rate"]
+    assert "margin_col_per_1k" in res and res["margin_violation_steps"] >= 0
+    grasp = evaluate_policy(params, dataclasses.replace(cfg.env_config(), safety_rows="grasp"), 2, seed=3,
+                            shielded=True, max_steps=40)
+    by_kind = grasp["proposal_violation_by_kind"]
     assert set(by_kind) == {"carrier_wall", "payload_wall", "formation", "any_wall"}
     assert all(0.0 <= v <= 1.0 for v in by_kind.values())
     # a step violates some row iff it violates a row of some kind
     kinds = [by_kind[k] for k in ("carrier_wall", "payload_wall", "formation")]
-    assert max(kinds) <= res["proposal_violation_rate"] <= sum(kinds) + 1e-12
+    assert max(kinds) <= grasp["proposal_violation_rate"] <= sum(kinds) + 1e-12
     assert max(kinds[:2]) <= by_kind["any_wall"] <= sum(kinds[:2]) + 1e-12
-    assert res["proposal_violation_rate"] > 0
+    assert grasp["proposal_violation_rate"] > 0
 
 
 def test_eval_beside_a_human_partner_holds_the_human_block(tiny_run, capsys):

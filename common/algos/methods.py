@@ -1,21 +1,35 @@
-"""The five learning methods of Sec. III / IV on hard-tree actors.
+"""The learning methods of Sec. III / IV on hard-tree actors (Table I plus the
+``joint_cbf`` ablation).
 
-Which method switches on what (shield, SAIL, TALO) is ``common.algos.registry``.
+Which method switches on what (shield, SAIL, joint step, TALO) is ``common.algos.registry``.
 
 The shield itself runs on the actor side; for the learner ``shielded`` only
 records that rewards come from ``a_exec``. The likelihood is always the
 proposal density at the stored ``a_prop`` (Eq. action_chain).
 
-HAPPO (Kuba et al.; HARL's scheme): each minibatch draws a random carrier
-order; carrier ``i_m`` maximizes ``E[min(r A M, clip(r) A M)]`` where ``M`` is
-the (detached) product of the updated ratios of the carriers before it, then
-``M`` is multiplied by its own new ratio. SAIL+CBF uses this sequential scheme
+HAPPO (Kuba et al.; HARL's scheme): a random carrier order (drawn once per
+update, as HARL draws it once per training call; ``AlgoConfig.happo_order =
+"minibatch"`` redraws it every minibatch); on each minibatch carrier ``i_m``
+maximizes ``E[min(r A M, clip(r) A M)]`` where ``M`` is the (detached) product
+of the updated ratios of the carriers before it, then ``M`` is multiplied by its
+own new ratio. (HARL runs all epochs of one agent before the next; here the
+sequence runs within every minibatch.) SAIL+CBF uses this sequential scheme
 too (the paper builds SAIL+CBF on the HAPPO baseline); a carrier's center is
 computed with its partners' tree outputs detached.
 
-TALO methods update all carriers jointly along ``g_TALO`` (common/algos/talo.py),
-one HVP per minibatch on the full actor parameter vector. The entropy bonus
-gradient is added after the projection (it only touches ``log_std``).
+Joint methods (TALO+CBF, SAGE, and the Joint+CBF ablation) step all carriers
+together along one flat direction: ``g_TALO`` (common/algos/talo.py, one HVP per
+minibatch on the full actor parameter vector) for TALO, ``g_ind`` for
+Joint+CBF. ``AlgoConfig.talo_step`` picks how it is applied ("adam": per-carrier
+Adam after global norm clipping, entropy gradient added after the projection;
+"direct": ``theta <- theta + talo_eta g`` with the entropy gradient inside
+``g_ind`` before the projection, no clipping).
+
+Mechanism metrics are measured the same way for every method: W_gap and
+cos(g_ind, g_team) (Eq. talo_gap, no HVP needed) on every minibatch, at the
+parameters before that minibatch's step: ``*_first`` on the first minibatch of
+the update (before any step), ``*_mean`` over all minibatches. See
+docs/interfaces.md for the full list of ``update`` diagnostics.
 
 The centralized critic (common/algos/critic.py) is trained after the actors
 on every minibatch, with its own Adam.
@@ -32,15 +46,18 @@ from torch import Tensor, nn
 from common.algos.config import AlgoConfig, kappa_schedule, tau_schedule
 from common.algos.critic import TeamCritic, ValueNormalizer, compute_gae, next_values
 from common.algos.registry import method_spec
-from common.algos.talo import cosine, flat_grad, talo_direction, talo_gap, unflatten_like
+from common.algos.talo import cosine, flat_grad, talo_gap, talo_project, unflatten_like
 from common.policy.proposal import proposal_entropy, proposal_log_prob
 from common.policy.sail import SailConfig, sail_center_implicit, sail_project
 from common.policy.tree import TreeConfig
 from common.policy.tree_torch import TeamPolicy
+from common.shield.qp import solve_cbf_qp
 from common.spec import CARRIER_ACT_DIM, N_CARRIERS
 from common.wire import SCHEMAS
 
 STATE_FORMAT_VERSION = 1
+VIOLATION_TOL = 1e-6      # a row is violated by a_ST when c - C a_ST exceeds this (as at deployment)
+ROW_KINDS = ("carrier_wall", "payload_wall", "formation")   # common.env.safety row kinds 0, 1, 2
 
 
 # Batch arrays the learner always reads; their shapes are the chunk schema's
@@ -79,6 +96,7 @@ class Method:
         self.name, self.cfg = name, cfg
         self.obs_dim, self.state_dim, self.n_agents = int(obs_dim), int(state_dim), n_agents
         self.shielded, self.uses_sail, self.uses_talo = spec.shielded, spec.uses_sail, spec.uses_talo
+        self.joint_step = spec.joint_step
         with torch.random.fork_rng():
             torch.manual_seed(cfg.seed)
             self.policy = TeamPolicy(
@@ -101,6 +119,7 @@ class Method:
         self.gen = torch.Generator().manual_seed(cfg.seed + 1)
         self.updates = 0
         self.last_happo_factors: dict[int, Tensor] = {}   # carrier -> M used (for tests)
+        self.last_happo_orders: list[list[int]] = []      # carrier order of each minibatch of the last update
 
     # ------------------------------------------------------------------ public API
 
@@ -120,6 +139,7 @@ class Method:
         settings = self.actor_settings(progress)
         tau, kappa = settings["tau"], settings["kappa"]
         data, batch_diag = self._prepare(batch)
+        batch_diag.update(self._qp_diagnostics(batch))
         B = data.obs.shape[0]
         n_mb = min(self.cfg.minibatches, B)
         sums: dict[str, float] = {}
@@ -130,22 +150,40 @@ class Method:
                 sums[k] = sums.get(k, 0.0) + float(v)
                 counts[k] = counts.get(k, 0) + 1
 
+        order: list[int] | None = None
+        self.last_happo_orders = []
         for epoch in range(self.cfg.epochs):
             perm = torch.randperm(B, generator=self.gen)
             for j, idx in enumerate(torch.tensor_split(perm, n_mb)):
                 mb = data.index(idx)
-                if epoch == 0 and j == 0:
-                    log(self._first_minibatch_diagnostics(mb, tau, kappa))
-                if self.uses_talo:
-                    log(self._talo_step(mb, tau, kappa))
+                before = self._flat_actor_params()
+                if self.joint_step:
+                    stats, gap = self._joint_step(mb, tau, kappa)
                 else:
-                    log(self._happo_step(mb, tau, kappa))
+                    # drawn after epoch 0's permutation, so that every method sees the same minibatches
+                    if order is None or self.cfg.happo_order == "minibatch":
+                        order = torch.randperm(self.n_agents, generator=self.gen).tolist()
+                    gap, cache = self._gap_diagnostics(mb, tau, kappa)
+                    stats = self._happo_step(mb, tau, kappa, order=order, cache=cache)
+                    self.last_happo_orders.append(list(order))
+                stats["actor_step_norm"] = float((self._flat_actor_params() - before).norm())
+                # W_gap, cos(g_ind, g_team): measured at the parameters before this minibatch's step
+                if epoch == 0 and j == 0:
+                    log({"w_gap_first": gap["w_gap"], "cos_ind_team_first": gap["cos_ind_team"],
+                         "logratio_at_start": gap["logratio_at_start"]})
+                log({"w_gap_mean": gap["w_gap"], "cos_ind_team_mean": gap["cos_ind_team"]})
+                log(stats)
                 log(self._critic_step(mb))
         self.updates += 1
         diag = {k: sums[k] / counts[k] for k in sums}
+        # the old keys (sage/report.py training curves): the like-for-like means
+        diag["w_gap"], diag["cos_ind_team"] = diag["w_gap_mean"], diag["cos_ind_team_mean"]
         diag.update(batch_diag)
         diag.update(tau=tau, kappa=kappa, updates=float(self.updates))
         return diag
+
+    def _flat_actor_params(self) -> Tensor:
+        return torch.cat([p.detach().reshape(-1) for p in self.actor_params]).double()
 
     # ------------------------------------------------------------------ batch preparation
 
@@ -233,20 +271,65 @@ class Method:
 
     @staticmethod
     def _batch_diagnostics(batch, adv: np.ndarray, ret: np.ndarray) -> dict[str, float]:
-        """Proposal violation rate of the raw nominal action and the mean
-        proposal-execution correction ||a_exec - a_st||."""
+        """Whole-batch action diagnostics (numpy, no QP):
+
+        - ``proposal_violation_rate``: share of steps whose raw nominal action a_ST
+          violates some live row by more than 1e-6 (as ``evaluate_policy`` counts it);
+          per row kind (``proposal_violation_{carrier_wall,payload_wall,formation,any_wall}``)
+          only where the batch carries ``row_kind`` ([M] or [T,K,M] ints, 0/1/2 as
+          ``common.env.safety``, e.g. ``SafetyConfig.slot_kinds``), for the kinds it has;
+          the chunk schema has no such field, so a plain batch gives the "any row" rate only;
+        - ``correction_mean`` = mean ||a_exec - a_ST|| (training chain; contains the
+          exploration noise a_prop - a_bar), ``exec_minus_prop`` = mean ||a_exec - a_prop||
+          (what the shield did to the sampled proposal), ``sail_residual`` = mean
+          ||a_bar - a_ST|| (what SAIL moved the center; 0 without SAIL; needs ``a_bar``).
+        """
         a_st = np.asarray(batch["a_st"], dtype=np.float64)
+        a_exec = np.asarray(batch["a_exec"], dtype=np.float64)
         slack = np.einsum("tkmd,tkd->tkm", np.asarray(batch["C"], dtype=np.float64), a_st) \
             - np.asarray(batch["c"], dtype=np.float64)
-        violated = (np.asarray(batch["row_mask"], dtype=bool) & (slack < -1e-6)).any(-1)
-        corr = np.linalg.norm(np.asarray(batch["a_exec"], dtype=np.float64) - a_st, axis=-1)
-        return {
-            "proposal_violation_rate": float(violated.mean()),
-            "correction_mean": float(corr.mean()),
+        row_viol = np.asarray(batch["row_mask"], dtype=bool) & (slack < -VIOLATION_TOL)
+        out = {
+            "proposal_violation_rate": float(row_viol.any(-1).mean()),
+            "correction_mean": float(np.linalg.norm(a_exec - a_st, axis=-1).mean()),
+            "exec_minus_prop": float(np.linalg.norm(
+                a_exec - np.asarray(batch["a_prop"], dtype=np.float64), axis=-1).mean()),
             "reward_mean": float(np.mean(batch["reward"])),
             "return_mean": float(ret.mean()),
             "adv_std": float(adv.std()),
         }
+        if "a_bar" in batch:
+            out["sail_residual"] = float(np.linalg.norm(
+                np.asarray(batch["a_bar"], dtype=np.float64) - a_st, axis=-1).mean())
+        if "row_kind" in batch:
+            kind = np.broadcast_to(np.asarray(batch["row_kind"]), row_viol.shape)
+            for k, name in enumerate(ROW_KINDS):
+                if (kind == k).any():        # kinds the row profile has (no formation under "paper")
+                    out[f"proposal_violation_{name}"] = float((row_viol & (kind == k)).any(-1).mean())
+            out["proposal_violation_any_wall"] = float((row_viol & (kind <= 1)).any(-1).mean())
+        return out
+
+    def _qp_diagnostics(self, batch) -> dict[str, float]:
+        """``correction_st``: mean ||Q_CBF(a_ST) - a_ST|| (the deployment correction,
+        Eq. qpshield applied to the raw tree action) and ``intervention_rate_st``
+        (share with correction > 1e-6), on ``cfg.diag_qp_samples`` evenly spaced
+        samples of the batch. Computed for every method; for unshielded HAPPO it is
+        a probe only (its deployment runs no QP)."""
+        n = int(self.cfg.diag_qp_samples)
+        if n <= 0:
+            return {}
+        T, K = np.shape(batch["reward"])
+        B = T * K
+        idx = np.unique(np.linspace(0, B - 1, min(n, B)).round().astype(np.int64))
+
+        def rows(key):
+            a = np.asarray(batch[key])
+            return a.reshape(B, *a.shape[2:])[idx]
+
+        res = solve_cbf_qp(rows("a_st").astype(np.float64), rows("C").astype(np.float64), rows("c").astype(np.float64),
+                           rows("row_mask").astype(bool), rows("fixed_mask").astype(bool))
+        return {"correction_st": float(res.correction_norm.mean()),
+                "intervention_rate_st": float((res.correction_norm > 1e-6).mean())}
 
     # ------------------------------------------------------------------ policy pieces
 
@@ -308,37 +391,119 @@ class Method:
 
     # ------------------------------------------------------------------ actor updates
 
-    def _talo_step(self, mb: Minibatch, tau: float, kappa: float) -> dict[str, float]:
-        """Joint actor step along g_TALO (Eqs. talo_gap .. talo_projection)."""
+    def _start_point(self, mb: Minibatch, tau: float, kappa: float):
+        """Graph of the surrogates at the current parameters (all carriers attached)."""
         a_st = self._tree_actions(mb, tau, range(self.n_agents))
-        log_ratio = self._log_ratio(mb, self._center(mb, a_st, kappa), self._log_std())
+        center = self._center(mb, a_st, kappa)
+        log_ratio = self._log_ratio(mb, center, self._log_std())
         L_ind, L_team = self._surrogates(mb, log_ratio)
+        return a_st, center, log_ratio, L_ind, L_team
+
+    @staticmethod
+    def _gap_stats(g_ind: Tensor, g_team: Tensor, w_gap, log_ratio: Tensor, active: Tensor) -> dict:
+        return {"w_gap": float(w_gap), "cos_ind_team": cosine(g_ind, g_team),
+                "logratio_at_start": float(log_ratio.detach()[active].abs().mean()) if active.any() else 0.0}
+
+    def _gap_diagnostics(self, mb: Minibatch, tau: float, kappa: float):
+        """W_gap and cos(g_ind, g_team) (Eq. talo_gap, no HVP) at the current
+        parameters, for the sequential methods (the joint step measures them
+        itself). Also returns the detached (a_ST, center) forward, which the
+        HAPPO step reuses instead of recomputing it (saves a SAIL solve)."""
+        a_st, center, log_ratio, L_ind, L_team = self._start_point(mb, tau, kappa)
+        g_ind, g_team, w, _ = talo_gap(L_ind, L_team, self.groups, separable=not self.uses_sail,
+                                       with_hvp=False)
+        return (self._gap_stats(g_ind, g_team, w, log_ratio, mb.active),
+                (a_st.detach().clone(), center.detach().clone()))
+
+    def _joint_step(self, mb: Minibatch, tau: float, kappa: float) -> tuple[dict[str, float], dict]:
+        """All carriers stepped together: along g_TALO (Eqs. talo_gap .. talo_projection)
+        for TALO methods, along g_ind for Joint+CBF; applied per ``cfg.talo_step``.
+        Returns (stats, gap stats measured before the step)."""
+        cfg = self.cfg
+        _, _, log_ratio, L_ind, L_team = self._start_point(mb, tau, kappa)
         # identity center: L_i depends on theta_i only -> one backward for g_ind
-        res = talo_direction(L_ind, L_team, self.groups, self.cfg.talo_sigma,
-                             self.cfg.talo_eps, separable=not self.uses_sail)
+        g_ind, g_team, w, grad_w = talo_gap(L_ind, L_team, self.groups, separable=not self.uses_sail,
+                                            with_hvp=self.uses_talo)
         entropy = self._entropy()
-        direction = res.g_talo + self.cfg.ent_coef * flat_grad(entropy.sum(), self.actor_params)
-        for p, g in zip(self.actor_params, unflatten_like(direction, self.actor_params)):
-            p.grad = -g.detach().clone()      # ascent on surrogates -> descent for Adam
-        grad_norm = nn.utils.clip_grad_norm_(self.actor_params, self.cfg.max_grad_norm)
-        for opt in self.actor_opts:
-            opt.step()
+        g_ent = cfg.ent_coef * flat_grad(entropy.sum(), self.actor_params) if cfg.ent_coef > 0 \
+            else torch.zeros_like(g_ind)
+        direct = cfg.talo_step == "direct"
         stats = self._ratio_stats(log_ratio, mb.active)
+        if self.uses_talo:
+            # direct: entropy inside g_ind, so the step taken is the projected one;
+            # adam: entropy after the projection (only touches log_std)
+            g, delta = talo_project(g_ind + g_ent if direct else g_ind, grad_w, w,
+                                    cfg.talo_sigma, cfg.talo_eps)
+            if not direct:
+                g = g + g_ent
+            stats.update(delta_gap=delta, talo_corrected=float(delta > 0.0))
+        else:
+            g = g_ind + g_ent
+        before = [p.detach().clone() for p in self.actor_params] if self.uses_talo else None
+        if direct:
+            with torch.no_grad():
+                for p, d in zip(self.actor_params, unflatten_like(g, self.actor_params)):
+                    p.add_(d.to(p.dtype), alpha=cfg.talo_eta)
+            grad_norm = float(g.norm())
+        else:
+            for p, d in zip(self.actor_params, unflatten_like(g, self.actor_params)):
+                p.grad = -d.detach().clone()      # ascent on surrogates -> descent for Adam
+            grad_norm = float(nn.utils.clip_grad_norm_(self.actor_params, cfg.max_grad_norm))
+            for opt in self.actor_opts:
+                opt.step()
+        if self.uses_talo:
+            met, decreases, floor = self._talo_condition(grad_w, w, g_ind, g_team, before, direct)
+            stats.update(talo_condition_met=met, talo_step_decreases_gap=decreases,
+                         talo_gap_at_floor=floor)
         stats.update(
             policy_loss=-float(sum(L_ind).detach()), team_loss=-float(L_team.detach()),
-            entropy=float(entropy.detach().mean()),
-            w_gap=res.w_gap, cos_ind_team=res.cos_ind_team, delta_gap=res.delta_gap,
-            talo_corrected=float(res.corrected), actor_grad_norm=float(grad_norm),
+            entropy=float(entropy.detach().mean()), actor_grad_norm=grad_norm,
         )
-        return stats
+        return stats, self._gap_stats(g_ind, g_team, w, log_ratio, mb.active)
 
-    def _happo_step(self, mb: Minibatch, tau: float, kappa: float) -> dict[str, float]:
-        """HAPPO sequential per-carrier clipped updates with the M factor."""
-        order = torch.randperm(self.n_agents, generator=self.gen).tolist()
+    def _talo_condition(self, grad_w: Tensor, w_gap, g_ind: Tensor, g_team: Tensor,
+                        before: list[Tensor], direct: bool) -> tuple[float, float, float]:
+        """Does the step actually applied, delta = theta_after - theta_before, meet
+        Eq. (talo_condition) to first order, grad W . delta <= -sigma W_gap eta?
+
+        eta is ``talo_eta`` for the direct step and ``actor_lr`` (Adam's nominal step
+        size) for the adam step. Tolerance: 1e-6 relative plus the rounding of the
+        parameters themselves (float32 parameters cannot represent delta exactly).
+        Where W_gap is at the rounding floor of the gradients it is built from
+        (W <= (8 eps (||g_ind|| + ||g_team||))^2 / 2, i.e. g_ind = g_team to working
+        precision: the first minibatch of an identity-center method, where the ratios
+        are 1 and the two gradients agree analytically) both sides are rounding noise
+        and ||grad W||^2 << talo_eps switches the correction off; the condition is
+        then counted as met (vacuous) and reported in ``talo_gap_at_floor``.
+        Returns (met, grad W . delta < 0, at_floor) as 0/1."""
+        eta = self.cfg.talo_eta if direct else self.cfg.actor_lr
+        gw = grad_w.detach().double()
+        after = torch.cat([p.detach().reshape(-1) for p in self.actor_params])
+        start = torch.cat([b.reshape(-1) for b in before])
+        delta = after.double() - start.double()
+        lhs = float(gw @ delta)
+        rhs = -self.cfg.talo_sigma * float(w_gap) * eta
+        eps = torch.finfo(after.dtype).eps
+        ulp = eps * torch.maximum(after.abs(), start.abs()).double()
+        tol = 1e-6 * (abs(rhs) + float(gw.norm() * delta.norm())) + float(gw.abs() @ ulp)
+        floor = 0.5 * (8.0 * torch.finfo(g_ind.dtype).eps * float(g_ind.norm() + g_team.norm())) ** 2
+        at_floor = float(w_gap) <= floor
+        return float(at_floor or lhs <= rhs + tol), float(lhs < 0.0), float(at_floor)
+
+    def _happo_step(self, mb: Minibatch, tau: float, kappa: float, order: list[int] | None = None,
+                    cache: tuple[Tensor, Tensor] | None = None) -> dict[str, float]:
+        """HAPPO sequential per-carrier clipped updates with the M factor, carriers
+        in ``order`` (a fresh random one if None). ``cache`` = the detached (a_ST,
+        center) forward at the current parameters, if already computed."""
+        if order is None:
+            order = torch.randperm(self.n_agents, generator=self.gen).tolist()
         factor = torch.ones_like(mb.adv)
-        with torch.no_grad():
-            a_st_cache = self._tree_actions(mb, tau, ())
-            center_cache = self._center(mb, a_st_cache, kappa)   # forward at current params
+        if cache is not None:
+            a_st_cache, center_cache = cache
+        else:
+            with torch.no_grad():
+                a_st_cache = self._tree_actions(mb, tau, ())
+                center_cache = self._center(mb, a_st_cache, kappa)   # forward at current params
         self.last_happo_factors = {}
         losses, kls, clips, ents, norms = [], [], [], [], []
         for i in order:
@@ -376,21 +541,6 @@ class Method:
                 "actor_grad_norm": float(np.mean(norms)),
                 # spread of the M factor the last carrier in the order was updated with
                 "happo_factor_std": float(factor.std()) if factor.numel() > 1 else 0.0}
-
-    def _first_minibatch_diagnostics(self, mb: Minibatch, tau: float, kappa: float) -> dict[str, float]:
-        """Before any step of this update: how far the learner's recomputed center is
-        from the actors' stored one (0 when on-policy and both sides agree), and
-        W_gap / cos(g_ind, g_team) for the sequential methods (no HVP needed)."""
-        a_st = self._tree_actions(mb, tau, range(self.n_agents))
-        center = self._center(mb, a_st, kappa)
-        log_ratio = self._log_ratio(mb, center, self._log_std())
-        out = {"logratio_at_start":
-               float(log_ratio.detach()[mb.active].abs().mean()) if mb.active.any() else 0.0}
-        if not self.uses_talo:
-            L_ind, L_team = self._surrogates(mb, log_ratio)
-            g_ind, g_team, w, _ = talo_gap(L_ind, L_team, self.groups, with_hvp=False)
-            out.update(w_gap=float(w), cos_ind_team=cosine(g_ind, g_team))
-        return out
 
     # ------------------------------------------------------------------ critic
 

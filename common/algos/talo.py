@@ -17,15 +17,32 @@ Given per-carrier surrogates ``L_i`` (Eq. ppo_surrogates), the team surrogate
 ``grad W`` is obtained by differentiating ``W_gap`` through the gradient
 graphs (``create_graph=True``); no Hessian is ever formed.
 
+What "exact" means for hard trees: autograd differentiates the graph it is
+given. The leaf controllers (``K``, ``beta``) and ``log_std`` enter the hard
+forward smoothly, so their blocks of ``g_ind``/``g_team`` and of ``grad W`` are
+the true derivatives (away from routing switches; a central finite difference
+agrees, tests/test_algos.py). The split parameters (``W``, ``b``) do not: the
+forward routing is hard, and their gradient blocks are the straight-through
+surrogate of Eq. (st_gate) (``hard + sigmoid(m/tau) - sigmoid(m/tau).detach()``).
+So ``W_gap`` itself contains those surrogate blocks, and the split entries of
+``grad W`` come from differentiating the straight-through graph twice: they
+are neither the derivative of ``W_gap``'s value as the splits move nor any
+other exact quantity, and a central finite difference of ``W_gap`` along the
+split parameters does not match them (relative error O(1); on the sage test
+minibatch of tests/test_algos.py a random split direction gives -4.5e-6 by
+finite difference against -8.6e-3 from autograd). ``grad W`` is exact only in
+the smooth directions; in the split directions it is a surrogate, like the ST
+gradient itself.
+
 Partner detachment: the paper forms ``grad_{theta_i} L_i`` with the partner
 nominal branches detached before the SAIL map. Because ``theta_i`` enters
 only carrier ``i``'s tree, the *value* of that partial derivative is the same
 whether partner branches are detached or not; detaching only stops ``L_i``
 from sending gradient into ``theta_j``. Here block ``i`` is always the partial
 ``autograd.grad(L_i, theta_i)``, so callers may build ``L_i`` on the shared
-(undetached) graph, and then ``grad W`` is the exact gradient of ``W_gap``,
-including the cross-carrier curvature through SAIL that a detached graph
-would drop. (tests/test_algos.py checks the detached and shared forms agree.)
+(undetached) graph, and then ``grad W`` keeps the cross-carrier curvature
+through SAIL that a detached graph would drop (with the caveat above for the
+split parameters). (tests/test_algos.py checks the detached and shared forms agree.)
 """
 from __future__ import annotations
 
@@ -84,6 +101,9 @@ def talo_project(
 
     With ``grad W = 0`` (or a correction too large to represent) no step along
     ``grad W`` can meet the condition; ``g_ind`` is then returned unchanged.
+    With ``eps > 0`` the condition holds up to the regularizer's slack:
+    ``grad W . g_TALO = -sigma W + [Delta]_+ eps / (||grad W||^2 + eps)``, which
+    matters only where ``||grad W||^2`` is not large against ``eps``.
     """
     if sigma < 0 or eps < 0:
         raise ValueError(f"TALO needs sigma >= 0 and eps >= 0 (got {sigma}, {eps})")

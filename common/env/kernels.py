@@ -203,9 +203,10 @@ def _wall_rows(k, pts, B, walls, cw, sw, margin, take, budget, alpha, search_rad
 @njit(cache=True)
 def safety_rows(carrier_xy, carrier_yaw, payload_xy, payload_yaw, pts_local, grasp_local, pair_rest,
                 walls, max_step_xy, alpha, carrier_radius, payload_margin, grasp_tol, search_radius,
-                walls_per_carrier, walls_per_point, carrier_budget, payload_budget,
+                walls_per_carrier, walls_per_point, carrier_budget, payload_budget, formation_budget,
                 C, c, mask, h_out, ent_out, wall_out):
     """``safety.build_rows_reference`` per env. ``walls [Kw,W,5]`` with ``Kw`` 1 (shared) or K.
+    ``formation_budget`` is 6 (the ``"grasp"`` profile's formation rows, after the wall rows) or 0.
     Outputs must come zeroed (``ent_out``/``wall_out`` filled with -1, formation ``ent_out`` set).
     Returns False if some env's grasp points coincide (the rotation fit is undefined)."""
     K = carrier_xy.shape[0]
@@ -279,9 +280,9 @@ def safety_rows(carrier_xy, carrier_yaw, payload_xy, payload_yaw, pts_local, gra
         _wall_rows(k, pw, pB, walls[kw], cw, sw, payload_margin, walls_per_point, payload_budget,
                    alpha, search_radius, carrier_budget, C, c, mask, h_out, ent_out, wall_out,
                    sd_buf, n_buf, near_h, near_w, cand_key, cand_idx)
-        # formation: two rows per pair, linearized along the pair's unit vector
+        # formation ("grasp" profile only): two rows per pair, linearized along the pair's unit vector
         row0 = carrier_budget + payload_budget
-        for q in range(3):
+        for q in range(3 if formation_budget > 0 else 0):
             i, kk = pair_i[q], pair_k[q]
             d0 = carrier_xy[k, i, 0] - carrier_xy[k, kk, 0]
             d1 = carrier_xy[k, i, 1] - carrier_xy[k, kk, 1]

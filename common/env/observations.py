@@ -39,6 +39,40 @@ RAY_MAX = 2.0
 _RAY_ANGLES = np.array([0.0, np.pi / 2, np.pi, -np.pi / 2])
 
 
+def observation_noise_std(cfg: EnvConfig) -> np.ndarray:
+    """Per-feature std [OBS_DIM] of the additive Gaussian observation noise (in feature units).
+
+    Derived from a localization error of ``cfg.obs_noise_xy`` (m) and ``cfg.obs_noise_yaw``
+    (rad) per localized pose (each carrier, the payload): a feature relative to two
+    independently localized poses (carrier -> slot/grasp/payload/partner, payload yaw
+    relative to own yaw) gets sqrt(2) of it, a feature relative to one pose and the map
+    (payload -> route/goal, wall distances) gets one, velocities one pose error per control
+    period, and features divided by a scale get the scaled std. ``progress`` and
+    ``time_left`` are exact (0). The rotation of carrier-frame vectors by the carrier's yaw
+    error (|v| sigma_yaw, <= 4 mm for the 0.8 m grasp offsets) is not modelled separately.
+    """
+    sx, sy, r2 = cfg.obs_noise_xy, cfg.obs_noise_yaw, np.sqrt(2.0)
+    v_scale = cfg.max_step_xy / cfg.control_dt
+    w_scale = cfg.max_step_yaw / cfg.control_dt
+    per = {
+        "vel_x": sx / cfg.control_dt / v_scale, "vel_y": sx / cfg.control_dt / v_scale,
+        "vel_yaw": sy / cfg.control_dt / w_scale,
+        "slot_dx": r2 * sx / cfg.lookahead, "slot_dy": r2 * sx / cfg.lookahead, "slot_dyaw": r2 * sy,
+        "grasp_dx": r2 * sx / cfg.drop_strain, "grasp_dy": r2 * sx / cfg.drop_strain,
+        "grasp_strain": r2 * sx / cfg.drop_strain,
+        "payload_dx": r2 * sx, "payload_dy": r2 * sx, "payload_sin": r2 * sy, "payload_cos": r2 * sy,
+        "heading_err": sy, "lookahead_dx": sx / cfg.lookahead, "lookahead_dy": sx / cfg.lookahead,
+        "goal_dx": sx / 5.0, "goal_dy": sx / 5.0, "goal_dyaw": sy, "progress": 0.0,
+        "partner1_dx": r2 * sx / 2.0, "partner1_dy": r2 * sx / 2.0, "partner1_strain": r2 * sx / cfg.drop_strain,
+        "partner2_dx": r2 * sx / 2.0, "partner2_dy": r2 * sx / 2.0, "partner2_strain": r2 * sx / cfg.drop_strain,
+        "wall_dist_front": sx / RAY_MAX, "wall_dist_left": sx / RAY_MAX, "wall_dist_back": sx / RAY_MAX,
+        "wall_dist_right": sx / RAY_MAX,
+        "payload_clearance": sx, "payload_wall_dx": sx, "payload_wall_dy": sx, "time_left": 0.0,
+    }
+    assert set(per) == set(OBS_FEATURE_NAMES)
+    return np.array([per[name] for name in OBS_FEATURE_NAMES])
+
+
 @dataclass
 class Snapshot:
     """Everything the task layer derives from the physics state at one instant (K envs)."""

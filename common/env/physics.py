@@ -9,11 +9,13 @@ physics steps are run. The tracker is stiff: inconsistent commands strain the gr
 """
 from __future__ import annotations
 
+import copy
+
 import mujoco
 import numpy as np
 
 from common.env.config import EnvConfig
-from common.env.layout import CARRY_HEIGHT, GRASP_LOCAL
+from common.env.layout import CARRY_HEIGHT, GRASP_LOCAL, PAYLOAD_MASS
 from common.env.mjcf import build_mjcf
 from common.env.scenarios import ScenarioSpec
 from common.spec import N_CARRIERS
@@ -36,7 +38,15 @@ def quat_rotate(quat, v):
 
 
 class TransportPhysics:
-    """One MjModel, K MjData; gathers the state of all K into numpy arrays."""
+    """One MjModel, K MjData; gathers the state of all K into numpy arrays.
+
+    Payload mass randomization (``set_payload_mass``) needs a per-env model, since
+    masses live in the MjModel: an env whose payload mass differs from the nominal one
+    gets its own copy of the model (``models[k]``; ~30 kB), with the payload body's mass
+    and inertia scaled (uniform density) and the derived constants (``mj_setConst``)
+    recomputed, as if the MJCF had been compiled with that mass (tested). ``model`` stays
+    the nominal model.
+    """
 
     def __init__(self, spec: ScenarioSpec, cfg: EnvConfig, num_envs: int):
         if num_envs < 1:
@@ -45,8 +55,11 @@ class TransportPhysics:
         self.xml = build_mjcf(spec, cfg)
         self.model = mujoco.MjModel.from_xml_string(self.xml)
         self.datas = [mujoco.MjData(self.model) for _ in range(num_envs)]
+        self.models = [self.model] * num_envs   # per env; a copy once its payload mass is changed
         self.K = num_envs
         m = self.model
+        self.payload_body = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "payload")
+        self._payload_inertia0 = m.body_inertia[self.payload_body].copy()
         jid = lambda name: m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, name)]
         self.carrier_qadr = np.array([[jid(f"c{i}_{a}") for a in ("x", "y", "yaw")] for i in range(N_CARRIERS)])
         self.carrier_vadr = np.array([[m.jnt_dofadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, f"c{i}_{a}")]
@@ -120,10 +133,31 @@ class TransportPhysics:
         hand = np.concatenate([cp[..., :2], np.full((self.K, N_CARRIERS, 1), CARRY_HEIGHT)], axis=-1)
         return np.linalg.norm(grasp_w - hand, axis=-1)
 
+    def payload_mass(self, k: int) -> float:
+        return float(self.models[k].body_mass[self.payload_body])
+
+    def set_payload_mass(self, k: int, mass: float):
+        """Give env k a payload of ``mass`` kg (mass and inertia scaled; takes effect now, call
+        before ``reset``). The nominal mass shares the nominal model again."""
+        b = self.payload_body
+        if mass == PAYLOAD_MASS:
+            self.models[k] = self.model
+            return
+        if self.models[k] is self.model:
+            self.models[k] = copy.copy(self.model)   # MjModel copies are deep
+        m = self.models[k]
+        m.body_mass[b] = mass
+        m.body_inertia[b] = self._payload_inertia0 * (mass / PAYLOAD_MASS)
+        mujoco.mj_setConst(m, self.datas[k])
+        # the compiler's model statistics (mj_setConst leaves them; the solver scales its
+        # tolerance with meaninertia): mean body mass and mean diagonal inertia at qpos0
+        m.stat.meanmass = float(m.body_mass[1:].mean())
+        m.stat.meaninertia = float(m.dof_M0.mean())
+
     # --- control --------------------------------------------------------------------
     def reset(self, k: int, payload_xy, payload_yaw: float, carrier_pose):
         """Place env k: payload at (xy, carry height, yaw), carriers at carrier_pose [3,3], grasps on."""
-        m, d = self.model, self.datas[k]
+        m, d = self.models[k], self.datas[k]
         mujoco.mj_resetData(m, d)
         a = self.payload_qadr
         d.qpos[a:a + 3] = (payload_xy[0], payload_xy[1], CARRY_HEIGHT)
@@ -160,10 +194,10 @@ class TransportPhysics:
     def step(self, actions):
         """Apply one control step to all K environments and refresh the state buffers."""
         ctrl = self.targets(actions)
-        m, n = self.model, self.cfg.substeps
+        n = self.cfg.substeps
         for k, d in enumerate(self.datas):
             d.ctrl[:] = ctrl[k]
-            mujoco.mj_step(m, d, n)
+            mujoco.mj_step(self.models[k], d, n)
         self.read()
 
     def release(self, k: int):

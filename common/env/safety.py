@@ -23,12 +23,40 @@ One-step predictor (linear in the stacked action ``a in [-1, 1]^9``):
     90° rotation. For an exactly rigid carrier motion by angle ``θ`` this is
     the exact motion up to ``O(θ²)`` (``δθ = sin θ``).
 
-Row kinds (slots are laid out ``[carrier-wall | payload-wall | formation]``):
+Row profiles (``SafetyConfig.profile``, set from ``EnvConfig.safety_rows``):
+
+* ``"paper"`` (default): collision rows only. Sec. III-B does not list its
+  rows, but Sec. IV scores the shield by collisions (Col./1k) and reports that
+  direct shielding *raises* the payload drop rate, which a shield that keeps
+  the grasp from straining could not do. Slots are laid out
+  ``[carrier-wall | payload-wall]``. Grasp strain is not a shield constraint:
+  a drop (strain above ``EnvConfig.drop_strain``) is a task outcome (DR) that
+  the shield does not prevent.
+* ``"grasp"``: our extension, not in the paper. It adds the formation rows that
+  keep every pair distance within ``grasp_tol`` of rest, so the grasp never
+  strains; slots are ``[carrier-wall | payload-wall | formation]``, the 6
+  formation rows last.
+
+No carrier-carrier separation rows in either profile: (1) MuJoCo does not
+collide carriers with each other (common/env/mjcf.py contact filter), so no
+collision measure could count such a contact; (2) while the payload is held
+(a drop ends the episode) the grasps, rigid on the board, keep carriers ``i, k``
+at ``D_ik >= D0_ik - s_i - s_k > min D0 - 2 drop_strain = 0.894 - 0.4 = 0.494 m``
+with strains ``s < drop_strain``, i.e. the 0.25 m discs (touching at 0.5 m)
+could meet only with both grasps at the release threshold at once; (3) with
+the shield's disc margin (``carrier_radius`` 0.30 m, 0.60 m between centres) a
+separation barrier ``D - 0.60`` is only 0.29 m at rest for the short pairs and
+two carriers can close 0.23 m in one step, so the row would constrain ordinary
+formation motions and go negative at ~0.15 m of strain per carrier: a
+one-sided formation row, which is what ``"paper"`` leaves out.
+
+Row kinds:
   0. carrier-wall: ``h = sd(p_i, box) - carrier_radius``;
   1. payload-wall: ``h = sd(p_j, box) - payload_margin`` for payload boundary
      points, whose predicted motion couples all three carriers;
-  2. formation: for each pair ``(i, k)`` with distance ``D`` and rest distance
-     ``D0``, ``h_lo = D - (D0 - grasp_tol)`` and ``h_hi = (D0 + grasp_tol) - D``.
+  2. formation (``"grasp"`` only): for each pair ``(i, k)`` with distance ``D``
+     and rest distance ``D0``, ``h_lo = D - (D0 - grasp_tol)`` and
+     ``h_hi = (D0 + grasp_tol) - D``.
 
 Wall rows use the supporting half-plane at the closest point ``q`` of the box
 with outward unit normal ``n`` (``(p - q)/|p - q|`` outside, the normal of the
@@ -56,14 +84,30 @@ inside the action box; the QP's slack answer handles that. Rows are not
 normalized here (that is ``common.policy.sail.normalize_rows``); rows whose
 coefficients vanish are masked instead of emitted.
 
-Budget split for ``max_rows = M`` slots: the 6 formation rows always get their
-slots; carrier-wall rows get ``3 * walls_per_carrier`` slots; payload-wall rows
-get the rest, ``M - 6 - 3 * walls_per_carrier``. Candidates of a kind are, per
-entity (carrier or payload point), its ``walls_per_*`` nearest walls with
-``h <= search_radius``; if a kind has more candidates than slots, the
-smallest-``h`` ones are kept. Rows within a wall kind are ordered by ``h``
-ascending and padded at the end of the kind's block (``row_mask`` False,
-zero coefficients, ``h = 0``).
+Budget split for ``max_rows = M`` slots: the formation rows (6 under
+``"grasp"``, 0 under ``"paper"``) always get their slots; carrier-wall rows get
+``3 * walls_per_carrier`` slots; payload-wall rows get the rest,
+``M - formation - 3 * walls_per_carrier``. Defaults for M = 34:
+``"paper"`` 9 carrier-wall + 25 payload-wall, ``"grasp"`` 9 + 19 + 6.
+Why: a row can bind (some action in the box violates it) only if one step can
+close its barrier by ``α h``, i.e. ``|C|_1 > α h``; a carrier moves at most
+``sqrt(2) max_step_xy`` = 0.11 m per step, so its rows bind only within
+``~0.11 / α`` = 0.38 m of a wall. A convex 0.6 m disc (radius + margin) has at
+most the two sides of a gate or corridor, or the two walls of a corner, that
+close: 3 walls per carrier keep one spare. The payload's 60 boundary points
+(0.08 m apart) face walls in runs of adjacent points, on both sides of a gate
+at once, and its rows are the ones coupling all three carriers (translation
+and rotation), so it gets every other slot. Measured on scripted runs with
+N(0, 0.3) action noise (all 9 scenarios, 4 envs each, full episodes): at most
+2 bindable walls per carrier; bindable payload candidates exceed 25 in <= 0.7%
+of steps except in needle_gate (19%, its thin posts), and exceed 16 (the old
+``"grasp"`` split 12 + 16 + 6) in up to 7% (36% in needle_gate).
+Candidates of a kind are, per entity (carrier or payload point), its
+``walls_per_*`` nearest walls with ``h <= search_radius``; if a kind has more
+candidates than slots, the smallest-``h`` ones are kept. Rows within a wall
+kind are ordered by ``h`` ascending and padded at the end of the kind's block
+(``row_mask`` False, zero coefficients, ``h = 0``). :attr:`SafetyConfig.kind_slices`
+gives each kind's slots.
 """
 from __future__ import annotations
 
@@ -76,6 +120,7 @@ from common.spec import JOINT_ACT_DIM, N_CARRIERS
 
 N_FORMATION_ROWS = 2 * len(PAIRS)
 KIND_CARRIER_WALL, KIND_PAYLOAD_WALL, KIND_FORMATION = 0, 1, 2
+PROFILES = ("paper", "grasp")   # row profiles (module docstring); "grasp" adds the formation rows
 _EPS = 1e-12
 
 
@@ -87,16 +132,21 @@ class SafetyConfig:
     max_rows: int = 34               # M
     carrier_radius: float = 0.30     # carrier footprint as a disc
     payload_margin: float = 0.05     # clearance kept by payload boundary points
-    walls_per_carrier: int = 4       # nearest walls per carrier (also sets the carrier budget)
+    walls_per_carrier: int = 3       # nearest walls per carrier (also sets the carrier budget, 3x this)
     walls_per_point: int = 2         # nearest walls per payload boundary point
     search_radius: float = 1.0       # walls with h above this are not candidates
     grasp_tol: float = 0.05          # allowed pair-distance deviation from rest
     max_step_xy: float = 0.05        # carrier displacement per unit action per control step
     max_step_yaw: float = 0.10       # carrier turn per unit action per control step
+    profile: str = "paper"           # "paper": wall rows only; "grasp": + formation rows (our extension)
 
     def __post_init__(self):
+        if self.profile not in PROFILES:
+            raise ValueError(f"SafetyConfig.profile must be one of {PROFILES}, got {self.profile!r}")
         for f in fields(self):
             v = getattr(self, f.name)
+            if f.name == "profile":
+                continue
             if not np.isfinite(v):
                 raise ValueError(f"SafetyConfig.{f.name} must be finite, got {v!r}")
         if not 0.0 < self.alpha <= 1.0:
@@ -113,16 +163,38 @@ class SafetyConfig:
                 raise ValueError(f"SafetyConfig.{name} must be a non-negative integer, got {v!r}")
         if self.payload_budget < 0:
             raise ValueError(
-                f"SafetyConfig.max_rows={self.max_rows} is smaller than the {N_FORMATION_ROWS} "
-                f"formation rows plus 3*walls_per_carrier={3 * self.walls_per_carrier} carrier rows")
+                f"SafetyConfig.max_rows={self.max_rows} is smaller than the {self.formation_budget} "
+                f"formation rows ({self.profile!r} profile) plus "
+                f"3*walls_per_carrier={3 * self.walls_per_carrier} carrier rows")
 
     @property
     def carrier_budget(self) -> int:
         return N_CARRIERS * int(self.walls_per_carrier)
 
     @property
+    def formation_budget(self) -> int:
+        """Formation slots: 6 under ``"grasp"``, none under ``"paper"``."""
+        return N_FORMATION_ROWS if self.profile == "grasp" else 0
+
+    @property
     def payload_budget(self) -> int:
-        return int(self.max_rows) - N_FORMATION_ROWS - self.carrier_budget
+        return int(self.max_rows) - self.formation_budget - self.carrier_budget
+
+    @property
+    def kind_slices(self) -> dict[str, slice]:
+        """Row slots of each kind the profile has: ``carrier_wall``, ``payload_wall`` and,
+        under ``"grasp"`` only, ``formation`` (the last ``N_FORMATION_ROWS`` slots)."""
+        cb, pb = self.carrier_budget, self.payload_budget
+        out = {"carrier_wall": slice(0, cb), "payload_wall": slice(cb, cb + pb)}
+        if self.formation_budget:
+            out["formation"] = slice(cb + pb, cb + pb + self.formation_budget)
+        return out
+
+    @property
+    def slot_kinds(self) -> np.ndarray:
+        """Kind of every row slot ``[M]`` (``KIND_*``)."""
+        return np.repeat([KIND_CARRIER_WALL, KIND_PAYLOAD_WALL, KIND_FORMATION],
+                         [self.carrier_budget, self.payload_budget, self.formation_budget])
 
 
 @dataclass
@@ -295,7 +367,8 @@ def barrier_values(geom: SafetyGeometry, walls: np.ndarray, cfg: SafetyConfig) -
     """True barrier values at a state (exact distances, no linearization).
 
     ``carrier_wall [K,3,W]``, ``payload_wall [K,P,W]``, ``formation [K,3,2]``
-    (``(h_lo, h_hi)`` per pair) and ``min [K]`` over all of them.
+    (``(h_lo, h_hi)`` per pair; ``[K,0,2]`` under the ``"paper"`` profile, which
+    has no formation barriers) and ``min [K]`` over all of them (``inf`` if none).
     """
     return barriers_at_points(geom.carrier_xy, payload_points_world(geom), geom.pair_rest, walls, cfg)
 
@@ -307,15 +380,41 @@ def barriers_at_points(carrier_xy, payload_points, pair_rest, walls, cfg: Safety
     walls = _check_walls(walls, K)
     sd_c = point_box_distance(carrier_xy, walls)[0] - cfg.carrier_radius
     sd_p = point_box_distance(payload_points, walls)[0] - cfg.payload_margin
-    dist, _ = _pair_terms(carrier_xy)
-    form = np.stack([dist - (pair_rest - cfg.grasp_tol), (pair_rest + cfg.grasp_tol) - dist], -1)
-    mins = [form.reshape(K, -1).min(1)]
-    if walls.shape[1]:
-        mins += [sd_c.reshape(K, -1).min(1)]
-        if sd_p.size:
-            mins += [sd_p.reshape(K, -1).min(1)]
+    if cfg.formation_budget:
+        dist, _ = _pair_terms(carrier_xy)
+        form = np.stack([dist - (pair_rest - cfg.grasp_tol), (pair_rest + cfg.grasp_tol) - dist], -1)
+    else:
+        form = np.zeros((K, 0, 2))
+    mins = [np.full(K, np.inf)]
+    for h in (form, sd_c, sd_p):
+        if h.size:
+            mins.append(h.reshape(K, -1).min(1))
     return {"carrier_wall": sd_c, "payload_wall": sd_p, "formation": form,
             "min": np.min(np.stack(mins, -1), -1)}
+
+
+def spec_barrier_min(carrier_sd, payload_sd, carrier_xy, pair_rest, cfg: SafetyConfig) -> np.ndarray:
+    """Smallest true barrier of the profile's specification [K] from precomputed distances.
+
+    ``carrier_sd [K,3]`` and ``payload_sd [K,P]`` are each point's signed distance to
+    its nearest wall (the env's snapshot has them, numba-computed), ``carrier_xy
+    [K,3,2]`` gives the pair distances for the ``"grasp"`` formation band. Equals
+    ``barriers_at_points(...)["min"]`` (same margins, ``inf`` without any barrier) at
+    O(K) extra cost; ``< 0`` is a margin violation (``BatchEnv`` ``margin_violation``).
+    """
+    carrier_sd = np.asarray(carrier_sd, dtype=np.float64)
+    payload_sd = np.asarray(payload_sd, dtype=np.float64)
+    K = carrier_sd.shape[0]
+    out = np.full(K, np.inf)
+    if carrier_sd.size:
+        out = np.minimum(out, carrier_sd.reshape(K, -1).min(1) - cfg.carrier_radius)
+    if payload_sd.size:
+        out = np.minimum(out, payload_sd.reshape(K, -1).min(1) - cfg.payload_margin)
+    if cfg.formation_budget:
+        dist, _ = _pair_terms(np.asarray(carrier_xy, dtype=np.float64))
+        dev = np.abs(dist - np.asarray(pair_rest, dtype=np.float64))
+        out = np.minimum(out, (cfg.grasp_tol - dev).min(1))
+    return out
 
 
 # ----------------------------------------------------------------------------- rows
@@ -384,8 +483,9 @@ def build_rows(geom: SafetyGeometry, walls: np.ndarray, cfg: SafetyConfig):
 
     Returns ``C [K,M,9]``, ``c [K,M]``, ``row_mask [K,M]`` and ``info`` with
     ``h [K,M]`` (barrier value of each row at ``x``), ``kind [K,M]`` (0
-    carrier-wall, 1 payload-wall, 2 formation), ``entity [K,M]`` (carrier,
-    payload point or pair index; -1 on padding) and ``wall [K,M]`` (-1 if none).
+    carrier-wall, 1 payload-wall, 2 formation; formation slots exist only under
+    the ``"grasp"`` profile), ``entity [K,M]`` (carrier, payload point or pair
+    index; -1 on padding) and ``wall [K,M]`` (-1 if none).
     See the module docstring for the derivation, conservativeness and budget.
     Computed per env by the numba kernel ``common.env.kernels.safety_rows``;
     :func:`build_rows_reference` is the same computation in numpy.
@@ -399,24 +499,24 @@ def build_rows(geom: SafetyGeometry, walls: np.ndarray, cfg: SafetyConfig):
     _check_walls(walls, K)
     walls = np.ascontiguousarray(walls[None] if walls.ndim == 2 else walls)
     M = int(cfg.max_rows)
-    cb, pb = cfg.carrier_budget, cfg.payload_budget
+    cb, pb, fb = cfg.carrier_budget, cfg.payload_budget, cfg.formation_budget
     C = np.zeros((K, M, JOINT_ACT_DIM))
     c = np.zeros((K, M))
     mask = np.zeros((K, M), dtype=bool)
     h = np.zeros((K, M))
     entity = np.full((K, M), -1, dtype=np.int64)
-    entity[:, cb + pb:] = np.repeat(np.arange(len(PAIRS)), 2)
+    if fb:
+        entity[:, cb + pb:] = np.repeat(np.arange(len(PAIRS)), 2)
     wall = np.full((K, M), -1, dtype=np.int64)
     ok = safety_rows(geom.carrier_xy, geom.carrier_yaw, geom.payload_xy, geom.payload_yaw,
                      geom.payload_points_local, geom.grasp_local, geom.pair_rest, walls,
                      float(cfg.max_step_xy), float(cfg.alpha), float(cfg.carrier_radius),
                      float(cfg.payload_margin), float(cfg.grasp_tol), float(cfg.search_radius),
-                     int(cfg.walls_per_carrier), int(cfg.walls_per_point), cb, pb,
+                     int(cfg.walls_per_carrier), int(cfg.walls_per_point), cb, pb, fb,
                      C, c, mask, h, entity, wall)
     if not ok:
         raise ValueError("grasp points coincide: the payload rotation fit is undefined")
-    kinds = np.repeat([KIND_CARRIER_WALL, KIND_PAYLOAD_WALL, KIND_FORMATION], [cb, pb, N_FORMATION_ROWS])
-    info = {"h": h, "kind": np.broadcast_to(kinds, (K, M)).copy(), "entity": entity, "wall": wall}
+    info = {"h": h, "kind": np.broadcast_to(cfg.slot_kinds, (K, M)).copy(), "entity": entity, "wall": wall}
     return C, c, mask, info
 
 
@@ -425,11 +525,7 @@ def build_rows_reference(geom: SafetyGeometry, walls: np.ndarray, cfg: SafetyCon
 
     Affine rows ``C a >= c`` (Eq. joint_safety_rows) for the next stacked action.
 
-    Returns ``C [K,M,9]``, ``c [K,M]``, ``row_mask [K,M]`` and ``info`` with
-    ``h [K,M]`` (barrier value of each row at ``x``), ``kind [K,M]`` (0
-    carrier-wall, 1 payload-wall, 2 formation), ``entity [K,M]`` (carrier,
-    payload point or pair index; -1 on padding) and ``wall [K,M]`` (-1 if none).
-    See the module docstring for the derivation, conservativeness and budget.
+    Returns the same arrays as :func:`build_rows`.
     """
     if not isinstance(geom, SafetyGeometry):
         raise TypeError(f"geom must be a SafetyGeometry, got {type(geom).__name__}")
@@ -440,16 +536,20 @@ def build_rows_reference(geom: SafetyGeometry, walls: np.ndarray, cfg: SafetyCon
                          int(cfg.walls_per_carrier), cfg.carrier_budget, cfg)
     payload = _wall_rows(payload_points_world(geom), point_B, walls, cfg.payload_margin,
                          int(cfg.walls_per_point), cfg.payload_budget, cfg)
-    form = _formation_rows(geom, carrier_B, cfg)
+    fb = cfg.formation_budget
+    if fb:
+        form = _formation_rows(geom, carrier_B, cfg)
+    else:  # "paper": no formation slots
+        form = (np.zeros((K, 0, JOINT_ACT_DIM)), np.zeros((K, 0)), np.zeros((K, 0), dtype=bool),
+                np.zeros((K, 0)), np.zeros((K, 0), dtype=np.int64))
     C = np.concatenate([carrier[0], payload[0], form[0]], 1)
     c = np.concatenate([carrier[1], payload[1], form[1]], 1)
     mask = np.concatenate([carrier[2], payload[2], form[2]], 1)
-    kinds = np.repeat([KIND_CARRIER_WALL, KIND_PAYLOAD_WALL, KIND_FORMATION],
-                      [cfg.carrier_budget, cfg.payload_budget, N_FORMATION_ROWS])
+    kinds = cfg.slot_kinds
     info = {
         "h": np.concatenate([carrier[3], payload[3], form[3]], 1),
         "kind": np.broadcast_to(kinds, (K, len(kinds))).copy(),
         "entity": np.concatenate([carrier[4], payload[4], form[4]], 1),
-        "wall": np.concatenate([carrier[5], payload[5], np.full((K, N_FORMATION_ROWS), -1)], 1),
+        "wall": np.concatenate([carrier[5], payload[5], np.full((K, fb), -1)], 1),
     }
     return C, c, mask, info

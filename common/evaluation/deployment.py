@@ -47,10 +47,13 @@ def deployment_step(params: dict, out: dict, shielded: bool, backend: str = "def
 
 
 def row_kind_slices(env: BatchEnv) -> dict[str, slice]:
-    """Row slots are laid out [carrier-wall | payload-wall | formation] (common.env.safety)."""
-    cb, pb = env.safety_cfg.carrier_budget, env.safety_cfg.payload_budget
-    return {"carrier_wall": slice(0, cb), "payload_wall": slice(cb, cb + pb),
-            "formation": slice(cb + pb, None), "any_wall": slice(0, cb + pb)}
+    """Row slots of each kind the env's row profile has (common.env.safety ``SafetyConfig.kind_slices``):
+    ``[carrier-wall | payload-wall]`` under ``safety_rows="paper"``, ``[... | formation]`` under
+    ``"grasp"`` (no ``formation`` key under ``"paper"``: there are no such rows to violate),
+    plus ``any_wall`` (carrier-wall and payload-wall together)."""
+    kinds = dict(env.safety_cfg.kind_slices)
+    kinds["any_wall"] = slice(0, kinds["payload_wall"].stop)
+    return kinds
 
 
 def evaluate_policy(params: dict, env_cfg, episodes: int, seed: int, shielded: bool,
@@ -60,8 +63,13 @@ def evaluate_policy(params: dict, env_cfg, episodes: int, seed: int, shielded: b
     shield statistics: ``intervention_rate`` (steps with correction > 1e-6),
     ``correction_mean``, ``infeasible_steps``, ``proposal_violation_rate``
     (share of a_ST violating a row by > 1e-6) and ``proposal_violation_by_kind``
-    (the same per row kind: carrier-wall, payload-wall, formation, and any_wall),
-    which tells obstacle constraints apart from the tight grasp-formation rows.
+    (the same per row kind of the profile, :func:`row_kind_slices`: carrier-wall,
+    payload-wall, formation under ``safety_rows="grasp"`` only, and any_wall), which
+    tells obstacle constraints apart from the tight grasp-formation rows.
+    Two collision measures come from the episodes (``aggregate``): ``col_per_1k``
+    (steps with physical wall contact) and ``margin_col_per_1k`` (steps after which a
+    true barrier of the shield's own specification is below 0, contact or not), both
+    with ``_std`` and ``_pooled``; ``margin_violation_steps`` is the pooled count.
     ``max_steps`` caps the loop (default: the episode limit + 1, by which every
     episode has ended)."""
     if episodes < 1:
@@ -107,5 +115,7 @@ def evaluate_policy(params: dict, env_cfg, episodes: int, seed: int, shielded: b
                    "correction_mean": corr_sum / max(steps, 1), "infeasible_steps": infeasible,
                    "proposal_violation_rate": violations / max(steps, 1),
                    "proposal_violation_by_kind": {k: v / max(steps, 1) for k, v in kind_violations.items()},
+                   "margin_violation_steps": sum(int(e["margin_violation_steps"]) for e in finished),
+                   "safety_rows": env.safety_cfg.profile,
                    "seed": seed})
     return result

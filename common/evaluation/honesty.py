@@ -52,7 +52,7 @@ KIND_NAMES = {safety.KIND_CARRIER_WALL: "carrier_wall", safety.KIND_PAYLOAD_WALL
 def row_barriers(barriers: dict, info: dict, M: int) -> np.ndarray:
     """The barrier each row protects, looked up in a :func:`safety.barrier_values` dict -> [K,M].
 
-    Padding rows get 0. Formation rows fill the last 6 slots as (lower, upper) per pair.
+    Padding rows get 0. Formation rows ("grasp" profile only) fill the last 6 slots as (lower, upper) per pair.
     """
     K = info["kind"].shape[0]
     kk = np.arange(K)[:, None].repeat(M, 1)
@@ -95,8 +95,8 @@ def _random_actions(rng, carrier_yaw, drift_dir, gain, noise):
 class _MujocoWorld:
     """The real BatchEnv; the true next geometry is read from the physics right after it steps."""
 
-    def __init__(self, scenario: str, num_envs: int, seed: int):
-        self.env = BatchEnv(EnvConfig(scenario=scenario), num_envs=num_envs, seed=seed)
+    def __init__(self, scenario: str, num_envs: int, seed: int, safety_rows: str = EnvConfig.safety_rows):
+        self.env = BatchEnv(EnvConfig(scenario=scenario, safety_rows=safety_rows), num_envs=num_envs, seed=seed)
         self.walls = self.env.walls_array
         self.cfg = self.env.safety_cfg
         self._next = None
@@ -133,11 +133,11 @@ class _MujocoWorld:
 class _PredictorWorld:
     """The one-step predictor as the world (the rows' own model)."""
 
-    def __init__(self, scenario: str, num_envs: int, seed: int):
+    def __init__(self, scenario: str, num_envs: int, seed: int, safety_rows: str = EnvConfig.safety_rows):
         spec = SCENARIOS[scenario]
         route = Route(spec.route)
         self.walls = spec.walls_array()
-        self.cfg = safety_config(EnvConfig(scenario=scenario))  # the env's safety parameters
+        self.cfg = safety_config(EnvConfig(scenario=scenario, safety_rows=safety_rows))  # the env's safety parameters
         rng = np.random.default_rng(seed)
         K = num_envs
         yaw = route.heading[0] + rng.uniform(-1, 1, K) * spec.start_range[2]
@@ -174,13 +174,15 @@ class _PredictorWorld:
 
 def measure_honesty(scenario: str, n_steps: int, seed: int, num_envs: int = 8, world: str = "mujoco",
                     drift_gain: float = 0.8, noise: float = 0.5, drift_steps: int = 20,
-                    tol: float = 1e-9, backend: str = "default") -> dict:
-    """Roll ``num_envs`` envs for ``n_steps`` shielded random steps; see the module docstring."""
+                    tol: float = 1e-9, backend: str = "default", safety_rows: str = EnvConfig.safety_rows) -> dict:
+    """Roll ``num_envs`` envs for ``n_steps`` shielded random steps; see the module docstring.
+    ``safety_rows`` is the row profile (``EnvConfig.safety_rows``); the formation kinds are
+    counted (and their ``row_rate`` defined) only under ``"grasp"``, NaN otherwise."""
     if world not in ("mujoco", "predictor"):
         raise ValueError(f"world must be 'mujoco' or 'predictor', got {world!r}")
     if n_steps < 1 or num_envs < 1:
         raise ValueError("n_steps and num_envs must be positive")
-    w = (_MujocoWorld if world == "mujoco" else _PredictorWorld)(scenario, num_envs, seed)
+    w = (_MujocoWorld if world == "mujoco" else _PredictorWorld)(scenario, num_envs, seed, safety_rows)
     cfg, K, M = w.cfg, num_envs, w.cfg.max_rows
     rng = np.random.default_rng(seed + 1)
     drift = np.zeros((K, 2))

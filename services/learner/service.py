@@ -106,6 +106,8 @@ def _episode_summary(episodes: list[dict]) -> dict:
     steps = sum(e.get("length", 0) for e in episodes)
     if steps and all("collision_steps" in e for e in episodes):
         out["col_per_1k"] = 1000.0 * sum(e["collision_steps"] for e in episodes) / steps
+    if steps and all("margin_violation_steps" in e for e in episodes):   # barrier < 0 of the shield's own spec
+        out["margin_col_per_1k"] = 1000.0 * sum(e["margin_violation_steps"] for e in episodes) / steps
     if "ep_drop_mean" in out:
         out["drop_rate"] = out["ep_drop_mean"]
     return out
