@@ -323,6 +323,9 @@ def test_supervised_run_survives_a_killed_actor(tmp_path):
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         wait_for(lambda: _member(run, "learner/0").get("version", -1) >= 2, 100, "two parameter updates", 0.2)
+        # two updates can come from actor 0's chunks alone: also wait until both actors stepped
+        wait_for(lambda: all(_member(run, f"actor/{i}").get("env_steps", 0) > 0 for i in (0, 1)), 100,
+                 "both actors stepping", 0.2)
         scraped = {port: urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10).read().decode()
                    for port in (base, base + 1, base + 10, base + 11)}
         assert "sage_learner_updates_total" in scraped[base]
