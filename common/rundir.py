@@ -3,6 +3,7 @@
     config.json             resolved TrainConfig, written by ``sage train`` / ``sage up``
     supervised_config.json  the config the supervised child processes read
     metrics.jsonl, .csv     one row per learner update
+    tb/                     the same rows as TensorBoard event files (with tensorboardX installed)
     metrics_discarded.jsonl rows of updates a learner restart rolled back (after its checkpoint)
     learner_version.json    the highest parameter version a learner published (versions never repeat)
     checkpoints/            atomic learner checkpoints (common/checkpoint.py)
@@ -35,6 +36,7 @@ class RunDir:
     metrics_jsonl = property(lambda self: self.root / "metrics.jsonl")
     metrics_csv = property(lambda self: self.root / "metrics.csv")
     metrics_discarded = property(lambda self: self.root / "metrics_discarded.jsonl")
+    tensorboard = property(lambda self: self.root / "tb")
     learner_version = property(lambda self: self.root / "learner_version.json")
     checkpoints = property(lambda self: self.root / "checkpoints")
     summary = property(lambda self: self.root / "summary.json")

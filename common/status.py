@@ -106,22 +106,31 @@ class StatusBoard:
         self._bus = None
 
 
+def is_tty(out) -> bool:
+    try:
+        return bool(out.isatty())
+    except (AttributeError, ValueError):   # no isatty, or a closed stream
+        return False
+
+
 class LiveLine:
     """Shows a status line: rewritten in place on a terminal (every call),
-    else one plain line every ``log_period_s`` (a log file gets whole lines)."""
+    else one plain line every ``log_period_s`` (a log file gets whole lines).
+    ``clock``: seconds, monotonic (a fake one in tests)."""
 
-    def __init__(self, out, log_period_s: float = 10.0):
+    def __init__(self, out, log_period_s: float = 10.0, clock=time.monotonic):
         self.out = out
-        self.tty = hasattr(out, "isatty") and out.isatty()
+        self.tty = is_tty(out)
         self.log_period_s = log_period_s
+        self.clock = clock
         self._last_log = -float("inf")
 
     def show(self, line: str) -> None:
         if self.tty:
             self.out.write("\r" + line + "   ")
             self.out.flush()
-        elif time.monotonic() - self._last_log >= self.log_period_s:
-            self._last_log = time.monotonic()
+        elif self.clock() - self._last_log >= self.log_period_s:
+            self._last_log = self.clock()
             print(line, file=self.out, flush=True)
 
     def close(self, line: str | None = None) -> None:
@@ -131,3 +140,105 @@ class LiveLine:
             self.out.flush()
         elif self.tty:
             self.out.write("\n")
+
+
+def format_duration(seconds: float | None) -> str:
+    """``45s``, ``3m05s``, ``2h04m``; ``-`` for unknown."""
+    if seconds is None or not seconds == seconds or seconds == float("inf"):
+        return "-"
+    s = max(0, int(round(seconds)))
+    if s < 60:
+        return f"{s}s"
+    if s < 3600:
+        return f"{s // 60}m{s % 60:02d}s"
+    return f"{s // 3600}h{s % 3600 // 60:02d}m"
+
+
+class Progress:
+    """Progress of a fixed amount of work (the runs of a suite, the episodes of an
+    evaluation), as one line::
+
+        suite [########------------] 4/10 runs, 2 running, 1 failed | 6m12s elapsed, ETA 9m30s
+
+    On a terminal the line is a bar rewritten in place (on every change of the
+    counts, else at most every ``tty_period_s``); anywhere else (a log file, a
+    pipe) it is one plain line every ``log_period_s``, the first after one period,
+    so a short job prints none. ``clear`` wipes the bar before other output on the
+    terminal; ``close`` ends it (elsewhere: prints the final state if any line was
+    printed). The ETA is the caller's (``eta_s``) or, without one, the mean time
+    per finished item times the items left. ``clock``: monotonic seconds (tests
+    pass a fake one)."""
+
+    def __init__(self, out, total: int, label: str, unit: str = "", log_period_s: float = 10.0,
+                 tty_period_s: float = 0.2, width: int = 20, clock=time.monotonic):
+        self.out, self.total, self.label, self.unit = out, max(0, int(total)), label, unit
+        self.tty = is_tty(out)
+        self.log_period_s, self.tty_period_s, self.width, self.clock = log_period_s, tty_period_s, width, clock
+        self.t0 = clock()
+        self.done, self.running, self.failed, self.eta_s, self.note = 0, None, 0, None, ""
+        self._last_write = self.t0 if not self.tty else -float("inf")
+        self._shown = 0            # length of the bar on the terminal (0: none shown)
+        self._printed = False      # a plain line was printed (not a terminal)
+        self._state = None
+
+    def eta(self) -> float | None:
+        if self.total and self.done + self.failed >= self.total:
+            return 0.0
+        if self.eta_s is not None:
+            return self.eta_s
+        if self.done <= 0:
+            return None
+        left = max(self.total - self.done - self.failed, 0)
+        return (self.clock() - self.t0) / self.done * left
+
+    def line(self) -> str:
+        ended = min(self.done + self.failed, self.total)
+        frac = ended / self.total if self.total else 1.0
+        unit = f" {self.unit}" if self.unit else ""
+        parts = [f"{self.done}/{self.total}{unit}"]
+        if self.running is not None:
+            parts.append(f"{self.running} running")
+        if self.failed:
+            parts.append(f"{self.failed} failed")
+        text = ", ".join(parts) + (f" | {self.note}" if self.note else "")
+        text += f" | {format_duration(self.clock() - self.t0)} elapsed, ETA {format_duration(self.eta())}"
+        if self.tty:
+            filled = int(round(frac * self.width))
+            return f"{self.label} [{'#' * filled}{'-' * (self.width - filled)}] {text}"
+        return f"{self.label}: {100 * frac:3.0f}% {text}"
+
+    def update(self, done: int, running: int | None = None, failed: int = 0, eta_s: float | None = None,
+               note: str = "") -> None:
+        self.done, self.running, self.failed, self.eta_s, self.note = done, running, failed, eta_s, note
+        now = self.clock()
+        if self.tty:
+            state = (done, running, failed)
+            if state != self._state or not self._shown or now - self._last_write >= self.tty_period_s:
+                self._state = state
+                self._draw(now)
+        elif now - self._last_write >= self.log_period_s:
+            self._last_write = now
+            self._printed = True
+            print(self.line(), file=self.out, flush=True)
+
+    def _draw(self, now: float) -> None:
+        line = self.line()
+        self.out.write("\r" + line + " " * max(self._shown - len(line), 0))
+        self.out.flush()
+        self._shown, self._last_write = len(line), now
+
+    def clear(self) -> None:
+        """Wipe the bar off the terminal line (it is redrawn on the next update)."""
+        if self.tty and self._shown:
+            self.out.write("\r" + " " * self._shown + "\r")
+            self.out.flush()
+            self._shown = 0
+
+    def close(self) -> None:
+        if self.tty:
+            self._draw(self.clock())
+            self.out.write("\n")
+            self.out.flush()
+            self._shown = 0
+        elif self._printed:
+            print(self.line(), file=self.out, flush=True)

@@ -13,9 +13,11 @@ import json
 import sys
 from pathlib import Path
 
+from common.algos.registry import method_spec
 from common.audit.recording import Recorder
 from common.env.scenarios import SCENARIOS
 from common.evaluation.deployment import evaluate_policy
+from common.status import Progress
 from sage.errors import UsageError, nonneg_int, positive_int, user_input
 from sage.runs import load_run
 from services.config import FINAL_EVAL_SEED
@@ -41,11 +43,44 @@ def eval_record(e: dict) -> dict:
     return out
 
 
+def _team(slot) -> str:
+    return "three robots" if slot is None else f"a human in slot {slot}"
+
+
+def training_differences(trained_env, method: str, env_cfg, shielded: bool) -> dict:
+    """What this evaluation (``env_cfg``, ``shielded``) changes from the run's saved
+    configuration (``trained_env``, ``method``): scenario, human slot, shield on/off,
+    each as ``{"eval": ..., "trained": ...}``."""
+    diff = {}
+    if env_cfg.scenario != trained_env.scenario:
+        diff["scenario"] = {"eval": env_cfg.scenario, "trained": trained_env.scenario}
+    if env_cfg.human_slot != trained_env.human_slot:
+        diff["human_slot"] = {"eval": env_cfg.human_slot, "trained": trained_env.human_slot}
+    trained_shielded = method_spec(method).shielded
+    if shielded != trained_shielded:
+        diff["shielded"] = {"eval": shielded, "trained": trained_shielded}
+    return diff
+
+
+def differences_notice(diff: dict) -> str | None:
+    """``sage eval: evaluating on tilt_gate (trained on narrow_gate); unshielded (trained shielded)``."""
+    parts = []
+    if "scenario" in diff:
+        parts.append(f"evaluating on {diff['scenario']['eval']} (trained on {diff['scenario']['trained']})")
+    if "human_slot" in diff:
+        parts.append(f"with {_team(diff['human_slot']['eval'])} (trained with {_team(diff['human_slot']['trained'])})")
+    if "shielded" in diff:
+        on = {True: "shielded", False: "unshielded"}
+        parts.append(f"{on[diff['shielded']['eval']]} (trained {on[diff['shielded']['trained']]})")
+    return "sage eval: " + "; ".join(parts) if parts else None
+
+
 def run_eval_command(args) -> int:
     if args.record and Path(args.record).suffix != ".npz":
         raise UsageError(f"--record {args.record}: recordings are .npz files")
     with user_input(args.checkpoint):
         cfg, params, version = load_run(args.checkpoint)
+    trained_env = cfg.env_config()
     with user_input():
         if args.scenario:
             cfg.scenario = args.scenario
@@ -56,10 +91,26 @@ def run_eval_command(args) -> int:
             env_cfg = dataclasses.replace(
                 env_cfg, human_slot=None if args.human_slot == "none" else int(args.human_slot))
     shielded = not args.unshielded
+    diff = training_differences(trained_env, cfg.method, env_cfg, shielded)
+    notice = differences_notice(diff)
+    if notice:
+        print(notice, file=sys.stderr, flush=True)
     recorder = Recorder() if args.record else None   # records the very episodes it scores
-    raw = evaluate_policy(params, env_cfg, args.episodes, seed=args.seed, shielded=shielded, recorder=recorder)
+    bar = Progress(sys.stderr, args.episodes, "sage eval", unit="episodes")
+
+    def on_step(finished: int, step: int, limit: int) -> None:
+        # every episode has ended by the step limit: the ETA is an upper bound
+        elapsed = bar.clock() - bar.t0
+        bar.update(finished, note=f"step {step}/{limit}", eta_s=elapsed / step * (limit - step))
+
+    try:
+        raw = evaluate_policy(params, env_cfg, args.episodes, seed=args.seed, shielded=shielded, recorder=recorder,
+                              on_step=on_step)
+    finally:
+        bar.close()
     rec = eval_record(raw)
-    rec.update(method=cfg.method, scenario=cfg.scenario, version=version, human_slot=env_cfg.human_slot)
+    rec.update(method=cfg.method, scenario=cfg.scenario, version=version, human_slot=env_cfg.human_slot,
+               differs_from_training=diff)
     if recorder is not None:
         recording = recorder.recording(params, env_cfg, args.seed, shielded)
         rec["recording"] = str(recording.save(args.record))

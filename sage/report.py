@@ -144,8 +144,13 @@ def bootstrap_ci(values, strata=None, n_resamples: int = BOOTSTRAP_RESAMPLES, se
     return [float(lo), float(hi)]
 
 
-TRAIN_EXPOSURE_KEYS = ("train_col_per_1k", "train_drop_rate", "train_env_steps")
+TRAIN_EXPOSURE_KEYS = ("train_col_per_1k", "train_margin_col_per_1k", "train_drop_rate", "train_env_steps")
 CURVE_MEAN_KEYS = ("w_gap", "cos_ind_team")
+# Like-for-like mechanism diagnostics, logged by every method (common/algos/methods.py):
+# their training means, reported in one table (docs/interfaces.md, learner metrics)
+MECHANISM_KEYS = ("w_gap_first", "w_gap_mean", "cos_ind_team_first", "cos_ind_team_mean", "talo_condition_met",
+                  "proposal_violation_rate", "correction_st", "exec_minus_prop", "sail_residual")
+CURVE_MEAN_KEYS += MECHANISM_KEYS
 
 
 def run_value(r: Result, key: str) -> float:
@@ -210,7 +215,11 @@ def training_exposure(r: Result) -> dict:
     col = sum(p.get("ep_collision_steps_mean", 0.0) * p.get("episodes", 0) for p in rows)
     drops = sum(p.get("ep_drop_mean", 0.0) * p.get("episodes", 0) for p in rows)
     nan = float("nan")
+    # margin violations: the learner's per-update rate over the episodes that ended in it
+    margin = [(p["margin_col_per_1k"], p.get("episodes", 0)) for p in rows if p.get("margin_col_per_1k") is not None]
+    weight = sum(w for _, w in margin)
     return {"train_col_per_1k": 1000.0 * col / steps if steps else nan,
+            "train_margin_col_per_1k": sum(v * w for v, w in margin) / weight if weight else nan,
             "train_drop_rate": drops / eps if eps else nan, "train_env_steps": steps}
 
 
@@ -441,14 +450,28 @@ def table_markdown(summary: dict) -> str:
             lines.append(f"| {SCENARIO_TITLES[s]} | " + " | ".join(
                 _fmt(row[m]["train_col_per_1k"], 2) + _ci(row[m].get("ci"), 2) for m in methods) + " |")
     lines += ["", "### During training (same budget; collision steps and drops the carriers went through while learning)", "",
-              "| Method | Env steps | Col./1k | DR (%) |", "|---|---|---|---|"]
+              "| Method | Env steps | Col./1k (contact) | Col./1k (margin) | DR (%) |", "|---|---|---|---|---|"]
     for m in methods:
         o = summary["overall"][m]
         lines.append(f"| {METHOD_TITLES[m]} | {_fmt(o['train_env_steps']['mean'], 0)} | "
                      f"{_fmt(o['train_col_per_1k']['mean'], 2)} ± {_fmt(o['train_col_per_1k']['std'], 2)}"
                      f"{_ci(o['train_col_per_1k'].get('ci'), 2)} | "
+                     f"{_fmt(o['train_margin_col_per_1k']['mean'], 2)} ± {_fmt(o['train_margin_col_per_1k']['std'], 2)} | "
                      f"{_fmt(o['train_drop_rate']['mean'], 1, 100)} ± {_fmt(o['train_drop_rate']['std'], 1, 100)}"
                      f"{_ci(o['train_drop_rate'].get('ci'), 1, 100)} |")
+    present = [k for k in MECHANISM_KEYS if any(not math.isnan(summary["overall"][m][k]["mean"]) for m in methods)]
+    if present:
+        lines += ["", "### Mechanism diagnostics during training (mean over updates, then mean ± std across runs)",
+                  "", "W_gap and cos(g_ind, g_team) at the first minibatch of each update before any step (`_first`)"
+                  " and over all minibatches (`_mean`), the same points for every method; `talo_condition_met`: share"
+                  " of applied TALO steps meeting Eq. talo_condition; proposal violation and ||Q(a_ST) - a_ST||"
+                  " (`correction_st`) of the training batches; margin Col./1k: training steps with a barrier of the"
+                  ".", "",
+                  "| Method | " + " | ".join(present) + " |", "|" + "---|" * (1 + len(present))]
+        for m in methods:
+            o = summary["overall"][m]
+            lines.append(f"| {METHOD_TITLES[m]} | " + " | ".join(
+                f"{_fmt(o[k]['mean'], 3)} ± {_fmt(o[k]['std'], 3)}" for k in present) + " |")
     return "\n".join(lines) + "\n"
 
 

@@ -10,6 +10,7 @@ where it stopped. Runs are scheduled over ``--workers`` parallel slots
 from __future__ import annotations
 
 import argparse
+import heapq
 import itertools
 import json
 import os
@@ -22,6 +23,7 @@ from pathlib import Path
 from common.algos.registry import ALL_METHODS, METHODS
 from common.env.scenarios import FAMILIES, SCENARIOS
 from common.rundir import RunDir, atomic_write_text, read_jsonl
+from common.status import Progress
 from sage.errors import UsageError, int_list, nonneg_int, positive_float, positive_int, user_input
 from sage.evaluate import eval_record
 from sage.report import CURVE_KEYS
@@ -104,15 +106,47 @@ def collect_result(spec: RunSpec, run_dir: Path, budget: dict) -> dict:
     }
 
 
-def run_suite(cfg: SuiteConfig, log=print) -> list[Path]:
+def suite_eta(mean_run_s: float | None, pending: int, running_elapsed: list[float], workers: int) -> float | None:
+    """Seconds until the suite ends if every run takes ``mean_run_s``: each running
+    run ends after what is left of the mean, the pending runs queue over the
+    ``workers`` slots. ``None`` before any run has finished (no mean yet)."""
+    if mean_run_s is None:
+        return None
+    slots = [max(mean_run_s - e, 0.0) for e in running_elapsed]
+    slots += [0.0] * max(workers - len(slots), 0)
+    heapq.heapify(slots)
+    for _ in range(pending):
+        heapq.heappush(slots, heapq.heappop(slots) + mean_run_s)
+    return max(slots, default=0.0)
+
+
+def run_suite(cfg: SuiteConfig, log=print, progress_out=None) -> list[Path]:
+    """Run the pending runs of the plan; ``log`` gets one line per event, a
+    progress bar (runs done / running / failed, ETA from the mean run time) goes
+    to ``progress_out`` (default stderr; plain periodic lines when not a terminal)."""
     out = Path(cfg.out_dir)
     (out / "runs").mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "suite_config.json", json.dumps(asdict(cfg), indent=2))
-    pending = [s for s in plan(cfg) if not (out / f"{s.name}.json").exists()]
-    log(f"suite: {len(plan(cfg)) - len(pending)} done, {len(pending)} to run on {cfg.workers} workers")
+    planned = plan(cfg)
+    pending = [s for s in planned if not (out / f"{s.name}.json").exists()]
+    already = len(planned) - len(pending)
+    log(f"suite: {already} done, {len(pending)} to run on {cfg.workers} workers")
     running: dict[RunSpec, tuple[subprocess.Popen, float]] = {}
     written: list[Path] = []
     failures = 0
+    run_times: list[float] = []
+    bar = Progress(progress_out if progress_out is not None else sys.stderr, len(planned), "suite", unit="runs")
+
+    def say(msg: str) -> None:   # the bar steps aside for each event line
+        bar.clear()
+        log(msg)
+
+    def show() -> None:
+        mean = sum(run_times) / len(run_times) if run_times else None
+        now = time.time()
+        bar.update(already + len(written), running=len(running), failed=failures,
+                   eta_s=suite_eta(mean, len(pending), [now - t for _, t in running.values()], cfg.workers))
+
     # A single-threaded torch per run keeps `workers` runs from oversubscribing the cores.
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     while pending or running:
@@ -123,6 +157,7 @@ def run_suite(cfg: SuiteConfig, log=print) -> list[Path]:
             proc = subprocess.Popen(train_command(cfg, spec, run_dir), stdout=log_file,
                                     stderr=subprocess.STDOUT, env=env)
             running[spec] = (proc, time.time())
+        show()
         time.sleep(1.0)
         for spec, (proc, started) in list(running.items()):
             if proc.poll() is None:
@@ -131,7 +166,7 @@ def run_suite(cfg: SuiteConfig, log=print) -> list[Path]:
             run_dir = out / "runs" / spec.name
             if proc.returncode != 0:
                 failures += 1
-                log(f"suite: {spec.name} FAILED (exit {proc.returncode}); see {run_dir}.log")
+                say(f"suite: {spec.name} FAILED (exit {proc.returncode}); see {run_dir}.log")
                 continue
             budget = {"minutes": cfg.minutes_per_run, "updates": cfg.updates_per_run,
                       "wall_s": round(time.time() - started, 1),
@@ -141,9 +176,12 @@ def run_suite(cfg: SuiteConfig, log=print) -> list[Path]:
             # atomic: a half-written result never counts as done
             path = atomic_write_text(out / f"{spec.name}.json", json.dumps(record, indent=1))
             written.append(path)
+            run_times.append(budget["wall_s"])
             ev = record["eval"]
-            log(f"suite: {spec.name} SR={ev.get('success_rate', float('nan')):.2f} "
+            say(f"suite: {spec.name} SR={ev.get('success_rate', float('nan')):.2f} "
                 f"Col/1k={ev.get('col_per_1k', float('nan')):.1f} ({budget['wall_s']:.0f}s)")
+    show()
+    bar.close()
     if failures:
         log(f"suite: {failures} runs failed")
     return written

@@ -25,6 +25,7 @@ from sage.errors import UsageError, nonneg_int, one_line, port, positive_float, 
 from sage.runs import last_progress, load_run, read_config
 from services.config import FINAL_EVAL_SEED, TrainConfig
 from services.launcher import ROLES, run_inprocess
+from services.learner.service import tensorboard_available
 
 
 def register(commands, bench) -> None:
@@ -208,6 +209,9 @@ def cmd_train(args) -> int:
     cfg_path = save_run_config(cfg, run)
     print(f"run {cfg.run_id}: {cfg.method} on {cfg.scenario}, {cfg.actors} actor(s) x {cfg.envs_per_actor} envs, "
           f"mode {cfg.mode}, run dir {run.root}", file=sys.stderr)
+    if cfg.tensorboard:   # the learner writes event files when tensorboardX imports
+        print(f"tensorboard: events in {run.tensorboard}" if tensorboard_available() else
+              "tensorboard: off (pip install 'sage-transport[tensorboard]' for event files)", file=sys.stderr)
     if cfg.mode == "supervised":
         code = int(run_supervised(str(cfg_path)) or 0)
         if code:

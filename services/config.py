@@ -123,6 +123,9 @@ class TrainConfig:
     # second torch thread fights the actor/shield threads: measured in-process
     # 10 s -> 1.8 s per 512-sample SAGE update with 1 thread.
     torch_threads: int = 1
+    # TensorBoard event files of the metrics rows under <run_dir>/tb/, when the
+    # optional tensorboardX is installed (`pip install 'sage-transport[tensorboard]'`)
+    tensorboard: bool = True
     transport: TransportConfig = field(default_factory=TransportConfig)
     ports: PortsConfig = field(default_factory=PortsConfig)
     shield: ShieldConfig = field(default_factory=ShieldConfig)

@@ -156,3 +156,35 @@ def test_set_train_field_is_checked():
         apply_override(cfg, "train.no_such_field=1")
     with pytest.raises(SystemExit, match="unknown config field"):
         apply_override(cfg, "train.shield=1")       # nested sections go through shield.KEY
+
+
+def test_eval_reports_what_differs_from_training(tiny_run, capsys):
+    """`sage eval` says, before evaluating, which flags change the run's saved
+    configuration, and puts the same in its JSON."""
+    assert main(["eval", str(tiny_run), "--episodes", "1", "--json"]) == 0
+    cap = capsys.readouterr()
+    assert json.loads(cap.out)["differs_from_training"] == {} and "sage eval:" not in cap.err
+    assert main(["eval", str(tiny_run), "--episodes", "1", "--scenario", "tilt_gate", "--unshielded",
+                 "--human-slot", "1", "--json"]) == 0
+    cap = capsys.readouterr()
+    notice = [line for line in cap.err.splitlines() if line.startswith("sage eval:")]
+    assert notice == ["sage eval: evaluating on tilt_gate (trained on narrow_gate); with a human in slot 1 "
+                      "(trained with three robots); unshielded (trained shielded)"]
+    rec = json.loads(cap.out)
+    assert rec["differs_from_training"] == {
+        "scenario": {"eval": "tilt_gate", "trained": "narrow_gate"},
+        "human_slot": {"eval": 1, "trained": None},
+        "shielded": {"eval": False, "trained": True}}
+    assert rec["scenario"] == "tilt_gate" and rec["shielded"] is False and rec["human_slot"] == 1
+
+
+def test_eval_differences_of_an_unshielded_method():
+    from sage.evaluate import differences_notice, training_differences
+    from services.config import TrainConfig
+
+    cfg = TrainConfig(run_id="t", method="happo").resolve()
+    diff = training_differences(cfg.env_config(), cfg.method, cfg.env_config(), shielded=True)
+    assert diff == {"shielded": {"eval": True, "trained": False}}
+    assert differences_notice(diff) == "sage eval: shielded (trained unshielded)"
+    assert training_differences(cfg.env_config(), cfg.method, cfg.env_config(), shielded=False) == {}
+    assert differences_notice({}) is None

@@ -58,7 +58,7 @@ def row_kind_slices(env: BatchEnv) -> dict[str, slice]:
 
 def evaluate_policy(params: dict, env_cfg, episodes: int, seed: int, shielded: bool,
                     max_steps: int | None = None, backend: str = "default",
-                    recorder: DeploymentRecorder | None = None) -> dict:
+                    recorder: DeploymentRecorder | None = None, on_step=None) -> dict:
     """Run ``episodes`` deployment episodes; ``common.env.metrics.aggregate`` plus
     shield statistics: ``intervention_rate`` (steps with correction > 1e-6),
     ``correction_mean``, ``infeasible_steps``, ``proposal_violation_rate``
@@ -71,7 +71,8 @@ def evaluate_policy(params: dict, env_cfg, episodes: int, seed: int, shielded: b
     true barrier of the shield's own specification is below 0, contact or not), both
     with ``_std`` and ``_pooled``; ``margin_violation_steps`` is the pooled count.
     ``max_steps`` caps the loop (default: the episode limit + 1, by which every
-    episode has ended)."""
+    episode has ended). ``on_step(finished, step, limit)``, if given, is called
+    after every step (progress displays)."""
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     env = BatchEnv(env_cfg, episodes, seed=seed)
@@ -82,7 +83,7 @@ def evaluate_policy(params: dict, env_cfg, episodes: int, seed: int, shielded: b
     kind_violations = dict.fromkeys(kinds, 0)
     corr_sum = 0.0
     limit = max_steps or int(env.max_steps) + 1
-    for _ in range(limit):
+    for t in range(limit):
         live = np.array([f is None for f in first])
         if not live.any():
             break
@@ -108,6 +109,8 @@ def evaluate_policy(params: dict, env_cfg, episodes: int, seed: int, shielded: b
                 first[k] = ep
                 if recorder is not None:
                     recorder.on_episode(int(k), ep)
+        if on_step is not None:
+            on_step(sum(f is not None for f in first), t + 1, limit)
     finished = [f for f in first if f is not None]
     result = aggregate(finished)
     result.update({"episodes_requested": episodes, "episodes_finished": len(finished), "shielded": shielded,

@@ -1,6 +1,7 @@
 """Learner service: on-policy batches from trajectory chunks with bounded
 staleness, ``Method.update``, versioned parameter broadcasts, atomic
-checkpoints and resume, per-update metrics as JSONL + CSV.
+checkpoints and resume, per-update metrics as JSONL + CSV (and TensorBoard
+event files under ``<run_dir>/tb/`` when tensorboardX is installed).
 
 Staleness: a chunk whose oldest parameter version is below
 ``version - max_lag`` is dropped (counted as ``stale``); a chunk made with
@@ -15,6 +16,7 @@ import io
 import json
 import queue
 import secrets
+import socket
 import time
 from collections import deque
 from pathlib import Path
@@ -38,16 +40,69 @@ CHUNK_OUTCOMES = ("used", "stale", "incarnation", "shape", "future", "actor_id",
                   "lost", "actor_restarts")
 
 
+def tensorboard_available() -> bool:
+    """Whether tensorboardX (the optional ``tensorboard`` extra) can be imported."""
+    try:
+        import tensorboardX  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+class EventFile:
+    """One TensorBoard event file in ``logdir``, written synchronously through
+    tensorboardX's TFRecord writer (no background thread: ``scalars`` is on disk
+    when it returns). TensorBoard reads every event file of a directory, so a
+    resumed learner opens a new file beside the old ones; ``purge_step`` writes
+    the session-start marker that makes TensorBoard drop the earlier files'
+    events at steps >= it (the updates the restart rolled back)."""
+
+    def __init__(self, logdir: str | Path, suffix: str = "", purge_step: int | None = None):
+        from tensorboardX.proto.event_pb2 import Event, SessionLog
+        from tensorboardX.proto.summary_pb2 import Summary
+        from tensorboardX.record_writer import RecordWriter
+
+        self._Event, self._Summary = Event, Summary
+        logdir = Path(logdir)
+        logdir.mkdir(parents=True, exist_ok=True)
+        self.path = logdir / (f"events.out.tfevents.{int(time.time()):010d}.{socket.gethostname()}"
+                              + (f".{suffix}" if suffix else ""))
+        self._writer = RecordWriter(str(self.path))
+        self._write(Event(wall_time=time.time(), file_version="brain.Event:2"))
+        if purge_step is not None:
+            self._write(Event(wall_time=time.time(), step=int(purge_step),
+                              session_log=SessionLog(status=SessionLog.START)))
+        self._writer.flush()
+
+    def _write(self, event) -> None:
+        self._writer.write(event.SerializeToString())
+
+    def scalars(self, step: int, values: dict[str, float]) -> None:
+        """One event at ``step`` holding a scalar per entry, flushed."""
+        summary = self._Summary(value=[self._Summary.Value(tag=k, simple_value=float(v)) for k, v in values.items()])
+        self._write(self._Event(wall_time=time.time(), step=int(step), summary=summary))
+        self._writer.flush()
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+
+
 class MetricsLog:
     """Per-update rows to ``metrics.jsonl`` and ``metrics.csv`` (CSV is
-    rewritten atomically when a new column appears, so every row has every column).
+    rewritten atomically when a new column appears, so every row has every column)
+    and, with ``tensorboard`` and tensorboardX importable, as TensorBoard scalars
+    under ``tb/`` (one per numeric key, step = the row's update).
 
     On resume from a checkpoint taken after update ``upto``, rows of later
     updates (work the restart rolled back) move to ``metrics_discarded.jsonl``,
     marked with the restart, so ``metrics.jsonl`` never holds an update twice; a
-    torn last line (a killed learner) is dropped."""
+    torn last line (a killed learner) is dropped. The event files continue in the
+    same ``tb/`` directory, with the rolled-back steps purged for TensorBoard."""
 
-    def __init__(self, run_dir: str | Path, upto: int | None = None, marker: dict | None = None):
+    def __init__(self, run_dir: str | Path, upto: int | None = None, marker: dict | None = None,
+                 tensorboard: bool = False, events_suffix: str = ""):
         run = RunDir(run_dir)
         run.root.mkdir(parents=True, exist_ok=True)
         self.jsonl, self.csv = run.metrics_jsonl, run.metrics_csv
@@ -66,6 +121,9 @@ class MetricsLog:
             self.columns += [k for k in r if k not in self.columns]
         if self.rows:
             self._rewrite_csv()
+        self.events: EventFile | None = None
+        if tensorboard and tensorboard_available():
+            self.events = EventFile(run.tensorboard, events_suffix, None if upto is None else upto + 1)
 
     def _rewrite_csv(self) -> None:
         buf = io.StringIO()
@@ -86,6 +144,13 @@ class MetricsLog:
         else:
             with open(self.csv, "a", newline="") as f:
                 csv.DictWriter(f, fieldnames=self.columns).writerow(row)
+        if self.events is not None and "update" in row:
+            self.events.scalars(int(row["update"]), {
+                k: v for k, v in row.items() if isinstance(v, (int, float)) and not isinstance(v, bool)})
+
+    def close(self) -> None:
+        if self.events is not None:
+            self.events.close()
 
 
 def build_method(cfg) -> Method:
@@ -103,7 +168,7 @@ def _episode_summary(episodes: list[dict]) -> dict:
         if vals:
             out[f"ep_{k}_mean"] = float(np.mean(vals))
     # the paper's per-update safety figures over the episodes that ended in this batch
-    steps = sum(e.get("length", 0) for e in episodes)
+    steps = sum(e.get("steps", e.get("length", 0)) for e in episodes)   # env episodes: "steps"
     if steps and all("collision_steps" in e for e in episodes):
         out["col_per_1k"] = 1000.0 * sum(e["collision_steps"] for e in episodes) / steps
     if steps and all("margin_violation_steps" in e for e in episodes):   # barrier < 0 of the shield's own spec
@@ -376,10 +441,22 @@ class LearnerService(Service):
             self.method = build_method(self.cfg)
         resumed = self.try_resume()
         self.log_rows = MetricsLog(self.run_dir, upto=self.updates if resumed else 0,
-                                   marker={"rolled_back_by": self.incarnation, "resumed_from": self.resumed_from})
+                                   marker={"rolled_back_by": self.incarnation, "resumed_from": self.resumed_from},
+                                   tensorboard=self.cfg.tensorboard, events_suffix=self.incarnation)
         if self.log_rows.rolled_back:
             self.log.warning("moved %d metrics rows past the checkpoint to %s", self.log_rows.rolled_back,
                              self.paths.metrics_discarded.name)
+        if self.log_rows.events is not None:
+            self.log.info("tensorboard: on, events in %s", self.paths.tensorboard)
+        else:
+            self.log.info("tensorboard: off (%s)", "tensorboard=false" if not self.cfg.tensorboard else
+                          "tensorboardX not installed: pip install 'sage-transport[tensorboard]'")
+        try:
+            return self._loop()
+        finally:
+            self.log_rows.close()
+
+    def _loop(self) -> int:
         self.bus.subscribe(keys.traj_all(self.cfg.run_id), self._on_traj)
         self.listen_control()
         self.state = "running"
