@@ -125,6 +125,28 @@ def test_sail_implicit_gradient_matches_unrolled_map():
     assert torch.all(g_imp[fixed] == 0)                    # human blocks do not move
 
 
+def gap_fd_along(m, mb, v, surrogates, split: bool, h: float = 1e-6) -> float:
+    """Central finite difference of W_gap along ``v``, restricted to the split
+    parameters (W, b) or to all the others; ``v`` is masked and normalized in
+    place, so the caller's ``grad_w @ v`` is the matching directional derivative.
+    Leaves ``m``'s parameters moved (a throwaway method)."""
+    names = [n for tree in m.trees for n, _ in tree.named_parameters()]
+    on = torch.cat([torch.full((p.numel(),), (n in ("W", "b")) == split, dtype=torch.bool)
+                    for n, p in zip(names, m.actor_params)])
+    v.copy_(torch.where(on, v, torch.zeros_like(v)))
+    v /= v.norm()
+    base = [p.detach().clone() for p in m.actor_params]
+
+    def w_at(step):
+        with torch.no_grad():
+            for p, b, dv in zip(m.actor_params, base, unflatten_like(v, m.actor_params)):
+                p.copy_(b + step * dv)
+        L, team = surrogates(m, mb)
+        return float(talo_gap(L, team, m.groups, with_hvp=False)[2])
+
+    return (w_at(h) - w_at(-h)) / (2 * h)
+
+
 @pytest.mark.parametrize("name", ["sage", "talo_cbf"])
 def test_grad_w_gap_matches_directional_finite_difference(name):
     m, mb = prepared(name, seed=1)
@@ -135,22 +157,7 @@ def test_grad_w_gap_matches_directional_finite_difference(name):
     # gradients are straight-through surrogates (Eq. st_gate), whose autograd
     # derivative is again a surrogate and not the finite-difference derivative.
     v = torch.randn(grad_w.shape, generator=torch.Generator().manual_seed(0), dtype=grad_w.dtype)
-    names = [n for tree in m.trees for n, _ in tree.named_parameters()]
-    keep = [torch.full((p.numel(),), n not in ("W", "b"), dtype=torch.bool)
-            for n, p in zip(names, m.actor_params)]
-    v = torch.where(torch.cat(keep), v, torch.zeros_like(v))
-    v = v / v.norm()
-    base = [p.detach().clone() for p in m.actor_params]
-
-    def w_at(step):
-        with torch.no_grad():
-            for p, b, dv in zip(m.actor_params, base, unflatten_like(v, m.actor_params)):
-                p.copy_(b + step * dv)
-        L, team = team_surrogates(m, mb)
-        return float(talo_gap(L, team, m.groups, with_hvp=False)[2])
-
-    h = 1e-6
-    fd = (w_at(h) - w_at(-h)) / (2 * h)
+    fd = gap_fd_along(m, mb, v, team_surrogates, split=False)
     assert fd == pytest.approx(float(grad_w @ v), rel=1e-4, abs=1e-8)
 
 

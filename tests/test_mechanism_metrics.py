@@ -253,27 +253,12 @@ def test_grad_w_along_split_parameters_is_a_surrogate():
     """talo.py's docstring: along W, b (hard routing, straight-through backward)
     grad W_gap does not match a finite difference of W_gap; along the smooth
     parameters it does (tests/test_algos.py)."""
-    from common.algos.talo import unflatten_like
+    from test_algos import gap_fd_along
 
     m, mb = prepared_double("sage")
     L, team = surrogates(m, mb)
     _, _, _, grad_w = talo_gap(L, team, m.groups)
-    names = [n for tree in m.trees for n, _ in tree.named_parameters()]
-    split = torch.cat([torch.full((p.numel(),), n in ("W", "b"), dtype=torch.bool)
-                       for n, p in zip(names, m.actor_params)])
     v = torch.randn(grad_w.shape, generator=torch.Generator().manual_seed(0), dtype=grad_w.dtype)
-    v = torch.where(split, v, torch.zeros_like(v))
-    v = v / v.norm()
-    base = [p.detach().clone() for p in m.actor_params]
-
-    def w_at(step):
-        with torch.no_grad():
-            for p, b, dv in zip(m.actor_params, base, unflatten_like(v, m.actor_params)):
-                p.copy_(b + step * dv)
-        L, team = surrogates(m, mb)
-        return float(talo_gap(L, team, m.groups, with_hvp=False)[2])
-
-    h = 1e-6
-    fd = (w_at(h) - w_at(-h)) / (2 * h)
+    fd = gap_fd_along(m, mb, v, surrogates, split=True)
     assert abs(float(grad_w @ v)) > 1e-5
     assert fd != pytest.approx(float(grad_w @ v), rel=0.5)
