@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+VIOLATION_TOL = 1e-6   # an action violates a row when c - C a exceeds this (proposal-violation rates)
+
 
 @dataclass(frozen=True)
 class SafetyRows:
@@ -45,7 +47,14 @@ class SafetyRows:
         return SafetyRows(*(np.concatenate([np.asarray(getattr(p, k)) for p in parts]) for k in SafetyRows.FIELDS))
 
     def residual(self, a: np.ndarray) -> np.ndarray:
-        """c - C a per row [B, M] (positive = violated), -inf on masked-out rows."""
-        r = np.asarray(self.c, np.float64) - np.einsum("bmd,bd->bm", np.asarray(self.C, np.float64),
+        """c - C a per row [..., M] (positive = violated), -inf on masked-out rows; any
+        leading axes (a [..., d] with C [..., M, d])."""
+        r = np.asarray(self.c, np.float64) - np.einsum("...md,...d->...m", np.asarray(self.C, np.float64),
                                                        np.asarray(a, np.float64))
         return np.where(np.asarray(self.row_mask, bool), r, -np.inf)
+
+    def scaled_violation(self, a: np.ndarray) -> np.ndarray:
+        """Largest row violation per problem [...], each row's relative to max(1, ||C_i||)
+        (the QP's own tolerance convention); -inf where no row is live."""
+        scale = np.maximum(1.0, np.linalg.norm(np.asarray(self.C, np.float64), axis=-1))
+        return (self.residual(a) / scale).max(axis=-1, initial=-np.inf)

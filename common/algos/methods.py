@@ -51,12 +51,12 @@ from common.policy.proposal import proposal_entropy, proposal_log_prob
 from common.policy.sail import SailConfig, sail_center_implicit, sail_project
 from common.policy.tree import TreeConfig
 from common.policy.tree_torch import TeamPolicy
+from common.safety_rows import VIOLATION_TOL, SafetyRows
 from common.shield.qp import solve_cbf_qp
 from common.spec import CARRIER_ACT_DIM, N_CARRIERS
 from common.wire import SCHEMAS
 
 STATE_FORMAT_VERSION = 1
-VIOLATION_TOL = 1e-6      # a row is violated by a_ST when c - C a_ST exceeds this (as at deployment)
 ROW_KINDS = ("carrier_wall", "payload_wall", "formation")   # common.env.safety row kinds 0, 1, 2
 
 
@@ -286,9 +286,7 @@ class Method:
         """
         a_st = np.asarray(batch["a_st"], dtype=np.float64)
         a_exec = np.asarray(batch["a_exec"], dtype=np.float64)
-        slack = np.einsum("tkmd,tkd->tkm", np.asarray(batch["C"], dtype=np.float64), a_st) \
-            - np.asarray(batch["c"], dtype=np.float64)
-        row_viol = np.asarray(batch["row_mask"], dtype=bool) & (slack < -VIOLATION_TOL)
+        row_viol = SafetyRows.of(batch).residual(a_st) > VIOLATION_TOL   # as evaluate_policy counts it
         out = {
             "proposal_violation_rate": float(row_viol.any(-1).mean()),
             "correction_mean": float(np.linalg.norm(a_exec - a_st, axis=-1).mean()),

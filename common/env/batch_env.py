@@ -187,10 +187,9 @@ class BatchEnv:
         """[K] bool: some true barrier of the shield's own specification (the rows' margins:
         carrier disc + margin and payload points + margin vs walls, and the formation band
         under ``safety_rows="grasp"``) is below 0 at the snapshot's state. Reuses the
-        snapshot's per-point wall distances; a superset of contact (a disc or board in
+        snapshot's wall distances; a superset of contact (a disc or board in
         contact has a centre/boundary point within its margin of the wall)."""
-        carrier_sd = np.min(self.walls.signed_distance(snap.cxy), axis=-1, initial=np.inf)   # [K,3]
-        h_min = self._safety.spec_barrier_min(carrier_sd, snap.pay_dist, snap.cxy, PAIR_REST, self.safety_cfg)
+        h_min = self._safety.spec_barrier_min(snap.car_dist, snap.pay_dist, snap.cxy, PAIR_REST, self.safety_cfg)
         return h_min < 0.0
 
     # --- step ------------------------------------------------------------------------

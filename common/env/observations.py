@@ -94,6 +94,7 @@ class Snapshot:
     clearance: np.ndarray   # [K] min signed distance of the formation (payload points, carrier discs) to walls
     pay_dist: np.ndarray    # [K,P] signed distance of each payload boundary point to the nearest wall
     pay_vec: np.ndarray     # [K,P,2] vector from each payload boundary point to its nearest wall point
+    car_dist: np.ndarray    # [K,3] signed distance of each carrier centre to the nearest wall
 
     def take(self, idx) -> "Snapshot":
         return Snapshot(**{name: getattr(self, name)[idx] for name in self.__dataclass_fields__})
@@ -117,12 +118,13 @@ def snapshot(phys: TransportPhysics, route, walls: WallSet, s_prev, goal_s, cfg:
     _, route_yaw = route.pose(s)
     pts = pxy[:, None, :] + from_frame(PAYLOAD_POINTS_LOCAL[None], yaw[:, None])
     pay_dist, pay_vec = walls.nearest(pts)
-    d_car = walls.signed_distance(cp[..., :2]).min(axis=(-1, -2)) - CARRIER_RADIUS
+    car_dist = np.min(walls.signed_distance(cp[..., :2]), axis=-1, initial=np.inf)
+    d_car = car_dist.min(axis=-1) - CARRIER_RADIUS
     return Snapshot(
         cxy=cp[..., :2].copy(), cyaw=cp[..., 2].copy(), cvel=phys.carrier_vel[sel], pxy=pxy, pz=pos[:, 2].copy(),
         pyaw=yaw, tilt=tilt, pvel=phys.payload_vel[sel], strain=phys.grasp_strain()[sel], s=s,
         look_xy=look_xy, look_yaw=look_yaw, route_yaw=route_yaw, contact=phys.contact[sel].copy(),
-        clearance=np.minimum(pay_dist.min(axis=1), d_car), pay_dist=pay_dist, pay_vec=pay_vec,
+        clearance=np.minimum(pay_dist.min(axis=1), d_car), pay_dist=pay_dist, pay_vec=pay_vec, car_dist=car_dist,
     )
 
 

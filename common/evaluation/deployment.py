@@ -21,10 +21,9 @@ import numpy as np
 from common.env.batch_env import BatchEnv
 from common.env.metrics import aggregate
 from common.policy.rollout import propose
-from common.safety_rows import SafetyRows
+from common.safety_rows import VIOLATION_TOL, SafetyRows
 from common.shield.qp import STATUS_INFEASIBLE, shield_actions
 
-VIOLATION_TOL = 1e-6   # a row is violated by a_ST when c - C a_ST exceeds this
 
 
 class DeploymentRecorder(Protocol):

@@ -46,8 +46,7 @@ def verify_answer(a_prop: np.ndarray, rows: SafetyRows, a_exec: np.ndarray, stat
         return "fixed_block"
     if not np.isin(status, (STATUS_OPTIMAL, STATUS_INFEASIBLE)).all():
         return "status"
-    scale = np.maximum(1.0, np.linalg.norm(np.asarray(rows.C, np.float64), axis=-1))
-    violation = (rows.residual(a_exec) / scale).max(axis=1, initial=-np.inf)
+    violation = rows.scaled_violation(a_exec)
     claimed = status == STATUS_INFEASIBLE
     if np.any(violation[~claimed] > tol):
         return "rows"
@@ -56,7 +55,7 @@ def verify_answer(a_prop: np.ndarray, rows: SafetyRows, a_exec: np.ndarray, stat
         local = shield_actions(a_prop[idx], rows.select(idx), backend=backend)
         if np.any(local.status != STATUS_INFEASIBLE):
             return "infeasible_claim"
-        local_violation = (rows.select(idx).residual(local.a_exec) / scale[idx]).max(axis=1, initial=-np.inf)
+        local_violation = rows.select(idx).scaled_violation(local.a_exec)
         if np.any(violation[idx] > local_violation + tol):
             return "rows"
     return None

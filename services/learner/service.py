@@ -359,8 +359,7 @@ class LearnerService(Service):
         if self.method is not None and getattr(self.method, "shielded", False):
             rows = SafetyRows(*(np.asarray(batch[k]).reshape(-1, *np.shape(batch[k])[2:]) for k in SafetyRows.FIELDS))
             a_exec = np.asarray(batch["a_exec"]).reshape(-1, np.shape(batch["a_exec"])[-1])
-            scale = np.maximum(1.0, np.linalg.norm(np.asarray(rows.C, np.float64), axis=-1))
-            broken = (rows.residual(a_exec) / scale).max(axis=1, initial=-np.inf) > self.cfg.actor.verify_tol
+            broken = rows.scaled_violation(a_exec) > self.cfg.actor.verify_tol
             bad = int((broken & (status == 0)).sum() + (status < 0).sum())   # unshielded steps too
             self.unfiltered_steps += bad
             out["unfiltered_steps"] = bad
