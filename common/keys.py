@@ -37,9 +37,10 @@ def params(run_id: str) -> str:
     return f"{run_root(run_id)}/params"
 
 
-def shield(run_id: str) -> str:
-    """Shield queryable: one get per actor step, one reply per get."""
-    return f"{run_root(run_id)}/shield"
+def shield(run_id: str, shard: int = 0) -> str:
+    """Queryable of shield shard ``shard`` (``--shields K``: actor ``i`` asks
+    shard ``i % K``): one get per actor step, one reply per get."""
+    return f"{run_root(run_id)}/shield/{check_id(shard, 'shield shard')}"
 
 
 def status(run_id: str, role: str, member_id: int | str) -> str:

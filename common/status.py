@@ -16,19 +16,20 @@ def status_line(fresh: dict[str, dict], latest: dict[str, dict] | None = None) -
     """One line from the heartbeats: env steps/s (sum over actors heard from
     recently, ``fresh``), parameter version (learner), recent success rate
     (learner, else the actors' mean), the learner's last deterministic
-    deployment probe (if any), shield p99 solve latency, unhealthy
+    deployment probe (if any), shield p99 solve latency (slowest shard), unhealthy
     members. Version, success rate and p99 come from ``latest`` (default
     ``fresh``): a learner busy in a long update keeps its last values."""
     latest = fresh if latest is None else latest
     actors = [b for k, b in fresh.items() if k.startswith("actor/")]
     learner = latest.get("learner/0", {})
-    shield = latest.get("shield/0", {})
+    shield_p99 = [b["shield_p99_s"] for k, b in latest.items()
+                  if k.startswith("shield/") and b.get("shield_p99_s") is not None]
     sps = sum(b["env_steps_per_s"] for b in actors)
     sr = learner.get("success_rate")
     if sr is None:
         srs = [b["success_rate"] for b in actors if b.get("success_rate") is not None]
         sr = sum(srs) / len(srs) if srs else None
-    p99 = shield.get("shield_p99_s")
+    p99 = max(shield_p99) if shield_p99 else None   # the slowest shard
     deploy_sr = learner.get("extra", {}).get("deploy_sr")   # the learner's deterministic probe
     parts = [f"steps/s {sps:8.1f}", f"version {learner.get('version', -1)}",
              f"SR {sr:.2f}" if sr is not None else "SR -"]

@@ -188,7 +188,7 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         "params": ArrDict(),
         "settings": FloatDict(),             # Method.actor_settings: kappa, tau, ...
     },
-    # Actor -> shield query payload on sage/<run>/shield (one batched request per step).
+    # Actor -> shield query payload on sage/<run>/shield/<k> (one batched request per step).
     "shield_req": {
         "a_prop": Arr("float", ("B", JOINT_ACT_DIM)),
         "C": Arr("float", ("B", "M", JOINT_ACT_DIM)),

@@ -24,7 +24,7 @@ from deploy.supervisor import ServiceSpec, Supervisor, SupervisorConfig, free_tc
 from services.config import TrainConfig
 from services.launcher import ROLES, entry_argv, run_members
 
-# Prometheus port convention (deploy/prometheus.yml): base+0 learner, base+1 shield, base+10+i actor i
+# Prometheus port convention (deploy/prometheus.yml): base+0 learner, base+1+k shield shard k, base+10+i actor i
 METRICS_OFFSETS = {"learner": 0, "shield": 1, "actor_base": 10}
 
 
@@ -51,11 +51,12 @@ def parse_ids(text: str) -> list[int]:
 
 
 def service_specs(config_path: str | Path, roles: Sequence[str] = ROLES, actor_ids: Sequence[int] = (0,),
-                  python: str = sys.executable) -> list[ServiceSpec]:
-    """The run's members as supervised services; the learner's exit 0 ends the run
-    (it checkpoints on SIGTERM, so it is stopped in the first wave)."""
+                  python: str = sys.executable, shields: int = 1) -> list[ServiceSpec]:
+    """The run's members as supervised services (``shields`` shield shards); the
+    learner's exit 0 ends the run (it checkpoints on SIGTERM, so it is stopped
+    in the first wave)."""
     return [ServiceSpec(m.name, entry_argv(m, config_path, python), ends_run=m.role == "learner")
-            for m in run_members(actor_ids, roles)]
+            for m in run_members(actor_ids, roles, shields)]
 
 
 def router_spec(port: int, python: str = sys.executable, host: str = "127.0.0.1",
@@ -105,7 +106,7 @@ def run_supervised(config_path: str | Path, *, actors: int | None = None, roles:
         print(f"supervisor: warning: transport.mode is {cfg.transport.mode!r}; services attached to a router "
               "should use \"client\" (deploy/README.md)", file=out or sys.stderr)
     child_config = cfg.save(run.supervised_config)
-    specs += service_specs(child_config, roles, ids)
+    specs += service_specs(child_config, roles, ids, shields=cfg.shields)
     sup = Supervisor(specs, run.root, supervisor, out=out)
     board = StatusBoard(cfg.run_id, stale_after_s=max(5.0, 5 * cfg.status_period_s))
     print(f"supervisor: run {cfg.run_id}, {len(specs)} processes ({', '.join(s.name for s in specs)}), "

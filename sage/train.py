@@ -37,6 +37,8 @@ def register(commands, bench) -> None:
                    help=f"learner updates (budget; default {d.updates}, or unlimited when --minutes is given)")
     p.add_argument("--minutes", type=positive_float, default=d.minutes, help="wall-clock budget (whichever first)")
     p.add_argument("--actors", type=positive_int, default=d.actors)
+    p.add_argument("--shields", type=positive_int, default=d.shields,
+                   help="shield shards; actor i asks shard i %% shields (default %(default)s)")
     p.add_argument("--envs-per-actor", type=positive_int, default=d.envs_per_actor)
     p.add_argument("--chunk-len", type=positive_int, default=d.chunk_len)
     p.add_argument("--max-lag", type=nonneg_int, default=d.max_lag)
@@ -85,6 +87,7 @@ def _apply_args(cfg: TrainConfig, args) -> TrainConfig:
         updates = cfg.updates
     cfg.scenario, cfg.method, cfg.updates, cfg.minutes = args.scenario, args.method, updates, args.minutes
     cfg.actors, cfg.envs_per_actor, cfg.chunk_len = args.actors, args.envs_per_actor, args.chunk_len
+    cfg.shields = args.shields
     cfg.max_lag, cfg.seed, cfg.mode, cfg.eval_episodes = args.max_lag, args.seed, args.mode, args.eval_episodes
     cfg.ports.inprocess = args.metrics_port
     if args.human_slot is not None:
@@ -275,12 +278,14 @@ def add_up_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--actors", type=positive_int, default=None,
                    help=f"number of actors in the run (default: config's value, or cores-1 = {default_actor_count()} "
                         "for a fresh config)")
+    p.add_argument("--shields", type=positive_int, default=None,
+                   help="shield shards, each its own process; actor i asks shard i %% shields (default: config's)")
     p.add_argument("--roles", default=",".join(ROLES), help="which services this host runs (default: all)")
     p.add_argument("--actor-ids", default=None, help="actor ids this host runs, e.g. 2-3 (default: all)")
     p.add_argument("--connect", action="append", default=None,
                    help="Zenoh router endpoint, e.g. tcp/10.0.0.1:7447 (repeatable; default: start a local router)")
     p.add_argument("--metrics-base", type=port, default=None,
-                   help="Prometheus ports: base learner, base+1 shield, base+10+i actor i (e.g. 9400; 0 = off)")
+                   help="Prometheus ports: base learner, base+1+k shield shard k, base+10+i actor i (e.g. 9400; 0 = off)")
     p.add_argument("--restart-budget", type=nonneg_int, default=SupervisorConfig().restart_budget,
                    help="restarts of one service allowed within the supervisor's window before it gives up "
                         "(raise it for chaos runs, actor.chaos_crash_prob)")
@@ -309,7 +314,8 @@ def up_config(args) -> TrainConfig:
 
 
 def _apply_up_args(cfg: TrainConfig, args) -> TrainConfig:
-    for name in ("actors", "scenario", "method", "updates", "minutes", "envs_per_actor", "seed", "run_id", "run_dir"):
+    for name in ("actors", "shields", "scenario", "method", "updates", "minutes", "envs_per_actor", "seed", "run_id",
+                 "run_dir"):
         value = getattr(args, name)
         if value is not None:
             setattr(cfg, name, value)

@@ -123,11 +123,20 @@ class RateMeter:
 
 
 # ----------------------------------------------------------------- entry points
+def metrics_port(cfg: TrainConfig, role: str, member_id: int) -> int:
+    """Prometheus port of a member (0 = off): the learner's, shield shard k at
+    ``ports.shield + k``, actor i at ``ports.actor_base + i``."""
+    base = {"learner": cfg.ports.learner, "shield": cfg.ports.shield, "actor": cfg.ports.actor_base}[role]
+    return base + int(member_id) if base and role != "learner" else base
+
+
 def entry_parser(role: str) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=f"python -m services.{role}", description=f"SAGE {role} service")
     p.add_argument("--config", required=True, help="resolved run config (RUN.json)")
     if role == "actor":
         p.add_argument("--actor-id", type=int, required=True)
+    if role == "shield":
+        p.add_argument("--shard", type=int, default=0, help="shield shard k (0 .. shields-1), key shield/<k>")
     p.add_argument("--log-level", default="INFO")
     return p
 
@@ -147,9 +156,8 @@ def run_entry(role: str, make_service, argv=None) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
     registry = CollectorRegistry()
-    member = getattr(args, "actor_id", 0)
-    port = {"shield": cfg.ports.shield, "learner": cfg.ports.learner}.get(
-        role, cfg.ports.actor_base + member if cfg.ports.actor_base else 0)
+    member = getattr(args, "actor_id", getattr(args, "shard", 0))
+    port = metrics_port(cfg, role, member)
     server = serve_metrics(port, registry, addr=cfg.ports.bind)
     mode = cfg.transport.mode
     if mode == "peer" and cfg.transport.connect and not cfg.transport.listen:

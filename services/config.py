@@ -86,6 +86,12 @@ class ActorConfig:
     # Fault injection (as RLlib's fault-injecting env): per env step, the actor process
     # exits abruptly with this probability. For supervised runs, which restart it; 0 = off.
     chaos_crash_prob: float = 0.0
+    # Double-buffered sampling (as Sample Factory's): the K envs are two groups
+    # that alternate, so one group's proposals are at the shield while the other
+    # group steps physics. Same chunks (all K envs, one version per step), same
+    # fail-closed rules; only the order of waiting changes. Needs K >= 2 and a
+    # shielded method (without a shield there is no round trip to hide).
+    pipeline: bool = True
 
 
 @dataclass
@@ -94,6 +100,10 @@ class TrainConfig:
     scenario: str = "narrow_gate"
     method: str = "sage"
     actors: int = 1
+    # Shield shards: actor i asks shard i % shields on its own key (sage/<run>/shield/<k>),
+    # so one shield process stops being the bottleneck once actors outgrow it
+    # (docs/scaling.md). One shard serves a few actors at the training batch size.
+    shields: int = 1
     # K x T = 1024 samples per update: on narrow_gate (2 cores, in-process) SAGE
     # reaches deployment SR 1.0 in 4 min with these (docs/results_narrow_gate.md)
     envs_per_actor: int = 32           # K
@@ -209,7 +219,7 @@ class TrainConfig:
             raise ValueError(f"method {self.method!r} not in {ALL_METHODS}")
         if self.mode not in ("inprocess", "supervised"):
             raise ValueError(f"mode {self.mode!r} must be inprocess or supervised")
-        for name in ("actors", "envs_per_actor", "chunk_len"):
+        for name in ("actors", "shields", "envs_per_actor", "chunk_len"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.updates < 1 and not self.minutes:
@@ -220,6 +230,12 @@ class TrainConfig:
             raise ValueError("deploy_probe_every must be >= 0 and deploy_probe_episodes >= 1")
         if self.max_lag < 0 or self.chunks_per_update < 0:
             raise ValueError("max_lag and chunks_per_update must be >= 0")
+        if self.shields > self.actors:
+            raise ValueError(f"shields ({self.shields}) must be <= actors ({self.actors}): a shard without actors idles")
+        if self.ports.shield and self.ports.actor_base and self.ports.shield < self.ports.actor_base \
+                < self.ports.shield + self.shields:
+            raise ValueError(f"shield shard metric ports {self.ports.shield}..{self.ports.shield + self.shields - 1} "
+                             f"overlap the actors' from {self.ports.actor_base}")
         if self.shield.max_queue < 1:
             raise ValueError(f"shield.max_queue must be >= 1, got {self.shield.max_queue}")
         if self.shield.max_batch < 1 or self.shield.window_s < 0:
@@ -229,6 +245,14 @@ class TrainConfig:
     @property
     def batch_chunks(self) -> int:
         return self.chunks_per_update or self.actors
+
+    def shield_shard(self, actor_id: int) -> int:
+        """The shield shard actor ``actor_id`` asks."""
+        return int(actor_id) % self.shields
+
+    def actors_of_shard(self, shard: int) -> int:
+        """How many of the run's actors ask shard ``shard`` (ids 0 .. actors-1)."""
+        return len(range(int(shard), self.actors, self.shields))
 
     def env_config(self) -> EnvConfig:
         return dataclasses.replace(self.env, scenario=self.scenario)

@@ -46,21 +46,25 @@ class Member:
 
     @property
     def name(self) -> str:
-        """File-safe name (logs, supervisor): ``shield``, ``learner``, ``actor-3``."""
-        return f"actor-{self.member_id}" if self.role == "actor" else self.role
+        """File-safe name (logs, supervisor): ``learner``, ``actor-3``, ``shield``
+        (shard 0, the only one of most runs), ``shield-2``."""
+        if self.role == "actor" or (self.role == "shield" and self.member_id):
+            return f"{self.role}-{self.member_id}"
+        return self.role
 
     @property
     def sender(self) -> str:
         return f"{self.role}/{self.member_id}"
 
 
-def run_members(actor_ids: Sequence[int], roles: Sequence[str] = ROLES) -> list[Member]:
-    """The members of a run (or of this host's part of it), shield and learner
-    first: actors wait for both."""
+def run_members(actor_ids: Sequence[int], roles: Sequence[str] = ROLES, shields: int = 1) -> list[Member]:
+    """The members of a run (or of this host's part of it), shield shards and
+    learner first: actors wait for both."""
     bad = set(roles) - set(ROLES)
     if bad:
         raise ValueError(f"unknown roles {sorted(bad)}; choose from {', '.join(ROLES)}")
-    out = [Member(r) for r in ("shield", "learner") if r in roles]
+    out = [Member("shield", k) for k in range(shields)] if "shield" in roles else []
+    out += [Member("learner")] if "learner" in roles else []
     if "actor" in roles:
         out += [Member("actor", int(i)) for i in actor_ids]
     return out
@@ -69,7 +73,11 @@ def run_members(actor_ids: Sequence[int], roles: Sequence[str] = ROLES) -> list[
 def entry_argv(member: Member, config_path: str | Path, python: str = sys.executable) -> list[str]:
     """The process entry point of ``member`` (docs/wire.md)."""
     argv = [python, "-m", f"services.{member.role}", "--config", str(config_path)]
-    return argv + (["--actor-id", str(member.member_id)] if member.role == "actor" else [])
+    if member.role == "actor":
+        argv += ["--actor-id", str(member.member_id)]
+    elif member.role == "shield" and member.member_id:
+        argv += ["--shard", str(member.member_id)]
+    return argv
 
 
 class ServiceThreads:
@@ -119,13 +127,14 @@ def run_inprocess(cfg: TrainConfig, *, progress: bool = True, method=None, envs=
     stop = threading.Event()
     overrides = {"shield": {"solve": solve}, "learner": {"method": method}}
     services: dict[str, Service] = {}
-    for m in run_members(range(cfg.actors)):
+    for m in run_members(range(cfg.actors), shields=cfg.shields):
         kw = overrides.get(m.role, {})
         if m.role == "actor":
             kw = {"env": envs[m.member_id] if envs else None, "propose": propose}
         services[m.sender] = SERVICE_CLASSES[m.role](cfg, bus, m.member_id, registry, stop, **kw)
-    learner, shield = services["learner/0"], services["shield/0"]
+    learner = services["learner/0"]
     actors = [s for k, s in services.items() if k.startswith("actor/")]
+    shields = [s for k, s in services.items() if k.startswith("shield/")]
     board = StatusBoard(cfg.run_id, stale_after_s=max(5.0, 5 * cfg.status_period_s)).attach(bus)
     live = LiveLine(out if out is not None else sys.stderr)
     group = ServiceThreads(stop)
@@ -160,7 +169,7 @@ def run_inprocess(cfg: TrainConfig, *, progress: bool = True, method=None, envs=
     result["status"] = board.members()
     result["actors"] = [{"env_steps": a.env_steps, "shield_failures": a.shield_failures,
                          "chunks": a.chunks_sent, "rejected": dict(a.rejected)} for a in actors]
-    result["shield"] = {"requests": shield.n_requests, "rows": shield.n_rows,
-                        "p50_s": shield.solve_window.quantile(0.5), "p99_s": shield.solve_window.quantile(0.99)}
+    result["shields"] = [{"requests": sh.n_requests, "rows": sh.n_rows, "p50_s": sh.solve_window.quantile(0.5),
+                          "p99_s": sh.solve_window.quantile(0.99)} for sh in shields]
     result["params"] = learner.method.policy_params() if learner.method is not None else None
     return result

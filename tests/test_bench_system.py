@@ -27,10 +27,10 @@ from sage.bench.system import (
 )
 
 
-def status_msg(run_id: str, role: str, member: str, env_steps: int) -> bytes:
+def status_msg(run_id: str, role: str, member: str, env_steps: int, extra: dict | None = None) -> bytes:
     body = {"role": role, "id": member, "state": "running", "pid": 1, "uptime_s": 1.0, "version": 0,
             "env_steps": env_steps, "env_steps_per_s": 0.0, "updates": 0, "success_rate": None,
-            "shield_p99_s": None, "message": "", "extra": {}}
+            "shield_p99_s": None, "message": "", "extra": extra or {}}
     return wire.encode("status", body, run_id=run_id, sender=f"{role}/{member}", seq=0)
 
 
@@ -66,6 +66,32 @@ def test_step_meter_sums_actor_rates_on_the_sender_clock():
         th.join()
     assert sorted(meter.snapshot()) == ["0", "1"]
     assert rate == pytest.approx(550.0, rel=0.02)
+
+
+def test_step_meter_rates_the_learners_update_share_and_each_shards_qps():
+    meter = StepMeter("runA")
+    t0 = time.time()
+    stop = threading.Event()
+
+    def feed():
+        while not stop.is_set():
+            dt = time.time() - t0
+            meter.on_status("k", status_msg("runA", "actor", "0", 1 + int(100 * dt)))
+            meter.on_status("k", status_msg("runA", "learner", "0", 0, {"update_s_total": 0.25 * dt}))
+            for k, qps in (("0", 300.0), ("1", 50.0)):
+                meter.on_status("k", status_msg("runA", "shield", k, 0, {"rows": qps * dt}))
+            stop.wait(0.01)
+
+    th = threading.Thread(target=feed, daemon=True)
+    th.start()
+    try:
+        meter.measure(1, warmup_s=0.05, measure_s=0.5, timeout_s=10)
+    finally:
+        stop.set()
+        th.join()
+    r = meter.window_rates
+    assert r["learner/update_s"] == pytest.approx(0.25, rel=0.05)
+    assert r["shield/0/rows"] == pytest.approx(300.0, rel=0.05) and r["shield/1/rows"] == pytest.approx(50.0, rel=0.05)
 
 
 def test_step_meter_times_out_and_propagates_failures():
@@ -164,7 +190,16 @@ def test_command_line_and_table():
     assert (cfg.actor_counts, cfg.batch_sizes, cfg.measure_s) == ((1, 2), (1, 32), 3.0)
     with pytest.raises(ValueError):
         config_from_args(p.parse_args(["bench", "system", "--actors", "0"]))
-    result = {"env_steps_per_s": {"1": {"multiprocess": 120.0, "inprocess": 60.0}},
+    args = p.parse_args(["bench", "system", "--methods", "happo,sage", "--shards", "1,2", "--shard-actors", "2,4"])
+    cfg = config_from_args(args)
+    assert (cfg.methods, cfg.shard_counts, cfg.shard_actor_counts) == (("happo", "sage"), (1, 2), (2, 4))
+    with pytest.raises(ValueError):
+        config_from_args(p.parse_args(["bench", "system", "--methods", "nope"]))
+    one = {"multiprocess": 120.0, "inprocess": 60.0, "multiprocess_ratio_to_physics_bound": 0.3,
+           "inprocess_ratio_to_physics_bound": 0.15, "learner_update_share": 0.4,
+           "inprocess_learner_update_share": None, "restarts": {}, "inprocess_failures": []}
+    result = {"physics_bound_env_steps_per_s": 400.0, "system": {"sage": {"1": one}},
+              "shards": {"2": {"4": {"actor_env_steps_per_s": 900.0, "qps_served": 880.0, "qps_per_shard": {}}}},
               "shield_rtt_ms": {"8": {"p50": 3.9, "p99": 4.3, "inprocess_p50": 3.4, "inprocess_p99": 3.9,
                                       "local_qp_p50": 0.07, "local_qp_p99": 0.1}},
               "param_broadcast_ms": {"p50": 2.5, "p99": 4.0, "inprocess_p50": 0.9, "inprocess_p99": 1.1,
@@ -173,3 +208,4 @@ def test_command_line_and_table():
               "ratio_target": 0.7}
     table = summary_table(result)
     assert "ratio 0.83" in table and "B=8" in table and "27547 B" in table
+    assert "sage" in table and "(0.30,  0.40)" in table and "2 shard(s), 4 actors" in table

@@ -36,8 +36,20 @@ def bus():
     b.close()
 
 
+def _envs(pipelined: bool):
+    """One fake env, or a pipelined actor's two env groups (2 and 1 envs)."""
+    return [FakeBatchEnv(2, seed=0), FakeBatchEnv(1, seed=1)] if pipelined else FakeBatchEnv(2)
+
+
+def _executed(env) -> list[np.ndarray]:
+    return [a for e in (env if isinstance(env, list) else [env]) for a in e.executed]
+
+
+PIPELINED = pytest.mark.parametrize("pipelined", [False, True], ids=["sync", "pipelined"])
+
+
 def _started_actor(cfg, bus, stop, env, registry=None):
-    """An actor thread with the fake env and propose step, waiting for parameters."""
+    """An actor thread with the fake env(s) and propose step, waiting for parameters."""
     actor = ActorService(cfg, bus, 0, registry, stop=stop, env=env, propose=fake_propose)
     th = threading.Thread(target=actor.run, daemon=True)
     th.start()
@@ -82,37 +94,40 @@ CLAIMS_INFEASIBLE = ("raw, claimed infeasible",
                      lambda b: (np.clip(b["a_prop"], -1, 1), np.ones(len(b["a_prop"]), np.int32)))
 
 
+@PIPELINED
 @pytest.mark.parametrize("forger", [RAW, MAX_ITER, CLAIMS_INFEASIBLE], ids=lambda f: f[0])
-def test_forged_shield_alone_gets_nothing_executed(tmp_path, bus, forger):
+def test_forged_shield_alone_gets_nothing_executed(tmp_path, bus, forger, pipelined):
     cfg = make_cfg(tmp_path, actor=ActorConfig(shield_timeout_s=0.1, unhealthy_after_s=30))
     stop = threading.Event()
     _forged_shield(bus, cfg, forger[1], stop)
-    env, reg = FakeBatchEnv(2), CollectorRegistry()
+    env, reg = _envs(pipelined), CollectorRegistry()
     actor, th = _started_actor(cfg, bus, stop, env, reg)
     _publish_params(bus, cfg)
     wait_for(lambda: sum(actor.answers_refused.values()) >= 5)
     stop.set()
     th.join(5)
-    assert env.executed == []                      # fail closed: nothing ran
+    assert actor.pipelined == pipelined
+    assert _executed(env) == []                    # fail closed: nothing ran
     refused = sum(actor.answers_refused.values())
     metric = sum(sample(reg, "sage_actor_shield_answers_rejected_total", role="actor", actor_id="0", reason=r)
                  for r in ("rows", "status", "infeasible_claim"))
     assert metric == refused >= 5
 
 
-def test_forged_shield_beside_the_real_one_is_harmless(tmp_path, bus):
+@PIPELINED
+def test_forged_shield_beside_the_real_one_is_harmless(tmp_path, bus, pipelined):
     cfg = make_cfg(tmp_path, chunk_len=1000, actor=ActorConfig(shield_timeout_s=0.5))  # no learner: one long chunk
     stop = threading.Event()
     _forged_shield(bus, cfg, RAW[1], stop)
     shield = ShieldService(cfg, bus, stop=stop, solve=fake_solve)
     threading.Thread(target=shield.run, daemon=True).start()
-    env = FakeBatchEnv(2)
+    env = _envs(pipelined)
     actor, th = _started_actor(cfg, bus, stop, env)
     _publish_params(bus, cfg)
-    wait_for(lambda: len(env.executed) >= 40, timeout=30)
+    wait_for(lambda: len(_executed(env)) >= 40, timeout=30)
     stop.set()
     th.join(5)
-    assert all((a[:, 0] >= 0.5 - 1e-9).all() for a in env.executed)   # only filtered actions ran
+    assert all((a[:, 0] >= 0.5 - 1e-9).all() for a in _executed(env))   # only filtered actions ran
     assert sum(actor.answers_refused.values()) > 0                   # the forger was heard, and refused
 
 

@@ -349,11 +349,11 @@ def test_access_control_matches_role_table(tmp_path):
     root = f"sage/{RUN}"
     assert allowed("learner", "put", "ingress") == [f"{root}/params", f"{root}/status/learner/*"]
     assert allowed("actor", "put", "ingress") == [f"{root}/status/actor/*", f"{root}/traj/*"]
-    assert allowed("actor", "query", "ingress") == [f"{root}/shield"]
+    assert allowed("actor", "query", "ingress") == [f"{root}/shield/*"]
     assert allowed("actor", "declare_queryable", "ingress") == []
     assert allowed("actor", "reply", "ingress") == []
-    assert allowed("shield", "declare_queryable", "ingress") == [f"{root}/shield"]
-    assert allowed("shield", "reply", "ingress") == [f"{root}/shield"]
+    assert allowed("shield", "declare_queryable", "ingress") == [f"{root}/shield/*"]
+    assert allowed("shield", "reply", "ingress") == [f"{root}/shield/*"]
     assert allowed("supervisor", "put", "ingress") == [f"{root}/control", f"{root}/status/supervisor/*"]
     assert all(r["permission"] == "allow" for r in acl["rules"])
     # The written file is what zenoh parses.

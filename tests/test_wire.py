@@ -168,7 +168,7 @@ def test_traj_batch_concatenates_env_axis():
 def test_keys_are_scoped_and_ids_cannot_inject_wildcards():
     assert keys.traj("r1", 3) == "sage/r1/traj/3"
     assert keys.status("r1", "actor", 2) == "sage/r1/status/actor/2"
-    assert keys.shield("r1") == "sage/r1/shield" and keys.params("r1") == "sage/r1/params"
+    assert keys.shield("r1") == "sage/r1/shield/0" and keys.shield("r1", 2) == "sage/r1/shield/2" and keys.params("r1") == "sage/r1/params"
     assert keys.control("r1") == "sage/r1/control"
     for bad in ("a/b", "*", "a$", "", "x y", "**"):
         with pytest.raises(ValueError):

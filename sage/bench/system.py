@@ -1,12 +1,18 @@
 """``sage bench system --json``: figures of the distributed system, each next
 to its in-process twin.
 
-* ``env_steps_per_s[n]``: end-to-end environment steps/s of the whole system
+* ``system[method][n]``: end-to-end environment steps/s of the whole system
   (router, shield, learner, ``n`` actor processes, all under
   ``deploy.supervisor``) vs the same services as threads of one process
-  (in-process mode). Steady state: counted from the actors' ``status``
-  heartbeats (cumulative ``env_steps`` with the sender's clock) over
-  ``measure_s`` after every actor stepped for ``warmup_s``.
+  (in-process mode), for each of ``methods``; beside each, the learner's
+  share of wall time inside updates (the rest it waits for data) and the
+  ratio to ``physics_bound``: raw MuJoCo stepping the same model with the
+  same controls on one core (``sage bench env``'s bound, measured in this
+  run). Steady state: counted from the services' ``status`` heartbeats
+  (cumulative counters with the sender's clock) over ``measure_s`` after
+  every actor stepped for ``warmup_s``.
+* ``shards[k][n]``: ``k`` shield shard processes serving ``n`` actor
+  processes (no learner): the actors' steps/s and the QPs/s the shards served.
 * ``shield_rtt_ms[B]``: round trip of one batched request of ``B`` QPs to the
   shield process (p50/p99), beside the same request to a shield thread on an
   in-process Zenoh session and the bare ``solve_cbf_qp`` call (``local_qp``).
@@ -16,7 +22,7 @@ to its in-process twin.
   (``echo`` child, same host, same clock), beside the in-process delivery.
 * ``ratio_vs_local_qp``: steps/s of one actor process with the shield service
   in the loop divided by the same actor with a local in-process QP call
-  (``LocalQPActor``) -- no learner, parameters from the bench (target >= 0.7).
+  (``LocalQPActor``, synchronous) -- no learner, parameters from the bench.
 
 Child entry points of the bench (also run under the supervisor):
 ``python -m sage.bench.system local-actor --config RUN.json --actor-id I``
@@ -50,6 +56,7 @@ from common.spec import JOINT_ACT_DIM
 from common.transport import Bus
 from deploy.sage_run import router_spec, service_specs
 from deploy.supervisor import ServiceSpec, Supervisor, SupervisorConfig, free_tcp_port
+from sage.bench.env import bench_env
 from sage.errors import UsageError, int_list, positive_float, positive_int, user_input
 from services.actor.service import ActorService
 from services.base import run_entry
@@ -58,16 +65,19 @@ from services.launcher import ServiceThreads
 from services.learner.service import LearnerService, build_method
 from services.shield.service import ShieldService
 
-RATIO_TARGET = 0.7
+RATIO_TARGET = 0.85          # actor with the shield service vs with a local QP (issue 14)
 
 
 @dataclass
 class SystemBenchConfig:
     scenario: str = "narrow_gate"
-    method: str = "happo_cbf"          # shielded, with the cheapest learner update
+    method: str = "happo_cbf"          # shield/actor phases: shielded, with the cheapest learner update
+    methods: tuple[str, ...] = ("happo", "sage")   # whole-system phases: the cheapest and the dearest learner
     envs_per_actor: int = 32           # the training default (services.config.TrainConfig)
-    chunk_len: int = 16
+    chunk_len: int = 32                # the training default
     actor_counts: tuple[int, ...] = (1, 2)
+    shard_counts: tuple[int, ...] = (1, 2)          # shield shards ...
+    shard_actor_counts: tuple[int, ...] = (2, 4)    # ... serving this many actor processes
     warmup_s: float = 2.0              # after every actor stepped, before measuring
     measure_s: float = 6.0             # steady-state window per throughput figure
     start_timeout_s: float = 120.0     # services must be stepping by then
@@ -77,14 +87,17 @@ class SystemBenchConfig:
     seed: int = 0
 
     def validate(self) -> "SystemBenchConfig":
-        if min(self.actor_counts, default=0) < 1 or min(self.batch_sizes, default=0) < 1:
-            raise ValueError("actor counts and batch sizes must be >= 1")
+        if min(self.actor_counts + self.shard_counts + self.shard_actor_counts + self.batch_sizes, default=0) < 1:
+            raise ValueError("actor counts, shard counts and batch sizes must be >= 1")
+        if not self.methods or set(self.methods) - set(METHODS):
+            raise ValueError(f"methods must be some of {METHODS}, got {self.methods}")
         if self.measure_s <= 0 or self.warmup_s < 0 or self.rtt_requests < 1 or self.broadcasts < 1:
             raise ValueError("need measure_s > 0, warmup_s >= 0, rtt_requests >= 1, broadcasts >= 1")
         return self
 
 
-QUICK = dict(actor_counts=(1,), warmup_s=0.5, measure_s=2.0, batch_sizes=(1, 8), rtt_requests=20, broadcasts=5)
+QUICK = dict(actor_counts=(1,), methods=("happo",), shard_counts=(1,), shard_actor_counts=(1,), warmup_s=0.5,
+             measure_s=2.0, batch_sizes=(1, 8), rtt_requests=20, broadcasts=5)
 
 
 def quantiles_ms(samples_s) -> dict:
@@ -94,12 +107,14 @@ def quantiles_ms(samples_s) -> dict:
 
 # ----------------------------------------------------------------- throughput from heartbeats
 class StepMeter:
-    """Cumulative ``env_steps`` of every actor of a run, from its status
-    heartbeats (sender clock), to compute a steady-state system rate."""
+    """Cumulative counters from the services' status heartbeats (sender
+    clock): every actor's ``env_steps``, the learner's ``update_s_total`` and
+    each shield's ``rows``, to compute steady-state rates over a window."""
 
     def __init__(self, run_id: str):
         self.run_id = run_id
-        self.last: dict[str, tuple[float, int]] = {}
+        self.last: dict[str, tuple[float, float]] = {}        # actor id -> (t, env_steps)
+        self.counters: dict[str, tuple[float, float]] = {}    # "learner/update_s" | "shield/<k>/rows" -> (t, value)
         self._lock = threading.Lock()
 
     def on_status(self, _key: str, payload: bytes) -> None:
@@ -107,27 +122,43 @@ class StepMeter:
             msg = wire.decode(payload, run_id=self.run_id, expect="status")
         except wire.WireError:
             return
-        if msg.body["role"] == "actor":
-            with self._lock:
-                self.last[msg.body["id"]] = (msg.t, int(msg.body["env_steps"]))
+        b, extra = msg.body, msg.body.get("extra") or {}
+        with self._lock:
+            if b["role"] == "actor":
+                self.last[b["id"]] = (msg.t, int(b["env_steps"]))
+            elif b["role"] == "learner" and "update_s_total" in extra:
+                self.counters["learner/update_s"] = (msg.t, float(extra["update_s_total"]))
+            elif b["role"] == "shield" and "rows" in extra:
+                self.counters[f"shield/{b['id']}/rows"] = (msg.t, float(extra["rows"]))
 
     def snapshot(self) -> dict[str, tuple[float, int]]:
         with self._lock:
             return dict(self.last)
 
+    def counter_snapshot(self) -> dict[str, tuple[float, float]]:
+        with self._lock:
+            return dict(self.counters)
+
     def reset(self) -> None:
         with self._lock:
             self.last.clear()
+            self.counters.clear()
 
     def stepping(self, n_actors: int) -> bool:
         snap = self.snapshot()
         return len(snap) >= n_actors and all(s > 0 for _, s in snap.values())
 
+    @staticmethod
+    def rates(s0: dict, s1: dict) -> dict[str, float]:
+        """Per key: (value change) / (sender-clock time change) between two snapshots."""
+        return {k: (v1 - s0[k][1]) / (t1 - s0[k][0]) for k, (t1, v1) in s1.items() if k in s0 and t1 > s0[k][0]}
+
     def measure(self, n_actors: int, warmup_s: float, measure_s: float, timeout_s: float,
                 alive=lambda: None) -> float:
         """Wait until ``n_actors`` actors stepped, let them run ``warmup_s``,
         then sum over actors of steps/s between two snapshots ``measure_s``
-        apart (each actor's own clock). ``alive()`` raises if the system broke."""
+        apart (each actor's own clock); the other counters' rates of the same
+        window are left in ``window_rates``. ``alive()`` raises if the system broke."""
         deadline = time.monotonic() + timeout_s
         while not self.stepping(n_actors):
             alive()
@@ -135,22 +166,22 @@ class StepMeter:
                 raise TimeoutError(f"{n_actors} actor(s) not stepping after {timeout_s} s: {self.snapshot()}")
             time.sleep(0.05)
         time.sleep(warmup_s)
-        s0 = self.snapshot()
+        s0, c0 = self.snapshot(), self.counter_snapshot()
         time.sleep(measure_s)
         alive()
-        s1 = self.snapshot()
-        rate = 0.0
-        for k, (t1, n1) in s1.items():
-            if k in s0 and t1 > s0[k][0]:
-                rate += (n1 - s0[k][1]) / (t1 - s0[k][0])
-        return rate
+        s1, c1 = self.snapshot(), self.counter_snapshot()
+        self.window_rates = self.rates(c0, c1)
+        return sum(self.rates(s0, s1).values())
 
 
 # ----------------------------------------------------------------- the actor with a local QP
 class LocalQPActor(ActorService):
     """The actor service with the exact joint CBF-QP (Eq. qpshield) solved
     in-process instead of by the shield service: the reference of
-    ``ratio_vs_local_qp``."""
+    ``ratio_vs_local_qp``. Synchronous (nothing to overlap a local call with)."""
+
+    def __init__(self, cfg, *args, **kw):
+        super().__init__(replace(cfg, actor=replace(cfg.actor, pipeline=False)), *args, **kw)
 
     def filter_actions(self, a_prop, rows: SafetyRows):
         t0 = time.perf_counter()
@@ -207,7 +238,8 @@ class SystemBench:
         self._sups: list = []
 
     # ------------------------------------------------------------- helpers
-    def train_config(self, actors: int, connect: list[str] | None, tag: str, unpaced: bool = False):
+    def train_config(self, actors: int, connect: list[str] | None, tag: str, unpaced: bool = False,
+                     method: str | None = None, shields: int = 1):
         """A run config for one phase; one chunk per update, so the learner's
         batch does not depend on how many actors are up yet. ``unpaced``: the
         actor never waits for the learner (phase 1 has none: it measures the
@@ -215,7 +247,8 @@ class SystemBench:
         self._n += 1
         run_id = f"bench-{tag}-{os.getpid()}-{self._n}"
         cfg = TrainConfig(run_id=run_id, run_dir=str(self.work / run_id), scenario=self.cfg.scenario,
-                          method=self.cfg.method, actors=actors, envs_per_actor=self.cfg.envs_per_actor,
+                          method=method or self.cfg.method, actors=actors, shields=shields,
+                          envs_per_actor=self.cfg.envs_per_actor,
                           chunk_len=self.cfg.chunk_len, chunks_per_update=1, updates=1_000_000,
                           status_period_s=0.2, eval_episodes=0, checkpoint_every=1_000_000, seed=self.cfg.seed,
                           deploy_probe_every=0,   # a probe would pause the learner mid-measurement
@@ -418,40 +451,47 @@ class SystemBench:
                 "ratio_vs_local_qp": rates["shield_service"] / rates["local_qp"]}
 
     # ------------------------------------------------------------- phase 2: the whole system
-    def system_phase(self) -> dict:
-        """Router, shield, learner and actors; actors are added between the
-        measurements (1, then 2, ...), processes first, then threads."""
+    def system_phase(self, method: str) -> dict:
+        """Router, shield, learner and actors of ``method``; actors are added
+        between the measurements (1, then 2, ...), processes first, then threads."""
         counts = sorted(set(self.cfg.actor_counts))
         port = free_tcp_port()
         connect = [f"tcp/127.0.0.1:{port}"]
-        cfg, path = self.train_config(counts[-1], connect, "sys")
+        cfg, path = self.train_config(counts[-1], connect, "sys", method=method)
         run = Path(cfg.run_dir)
-        multi, have, restarts = {}, 0, {}
+        multi, learner_busy, restarts, have = {}, {}, {}, 0
         self.supervise([router_spec(port), *service_specs(path, roles=("shield", "learner"))], run, restart_budget=5)
         bus = Bus.open(connect=connect, mode="client")
         try:
             meter = StepMeter(cfg.run_id)
             bus.subscribe(keys.status_all(cfg.run_id), meter.on_status)
             for n in counts:
-                self.log(f"bench: whole system, {n} actor process(es)")
+                self.log(f"bench: whole system ({method}), {n} actor process(es)")
                 self.supervise(service_specs(path, roles=("actor",), actor_ids=range(have, n)), run / f"actors-{n}",
                                restart_budget=5)
                 have = n
                 multi[n] = meter.measure(n, self.cfg.warmup_s, self.cfg.measure_s, self.cfg.start_timeout_s,
                                          self.check)
+                learner_busy[n] = meter.window_rates.get("learner/update_s")
                 restarts[n] = self.restarts()
         finally:
             bus.close()
             self.stop_all()
-        inproc, failures = self._inprocess_system(counts)
-        return {"env_steps_per_s": {str(n): {"multiprocess": multi[n], "inprocess": inproc[n],
-                                             "restarts": restarts[n], "inprocess_failures": failures[n]}
-                                    for n in counts}}
+        inproc, inproc_busy, failures = self._inprocess_system(counts, method)
+        bound = self.physics_bound
+        return {str(n): {"multiprocess": multi[n], "inprocess": inproc[n],
+                         "multiprocess_ratio_to_physics_bound": multi[n] / bound,
+                         "inprocess_ratio_to_physics_bound": inproc[n] / bound,
+                         # seconds inside updates per second of wall time; 1 - this = waiting for data
+                         "learner_update_share": learner_busy[n], "inprocess_learner_update_share": inproc_busy[n],
+                         "restarts": restarts[n], "inprocess_failures": failures[n]}
+                for n in counts}
 
-    def _inprocess_system(self, counts: list[int]) -> tuple[dict[int, float], dict[int, list[str]]]:
-        """Steps/s with the services as threads; a failed learner thread is
-        reported (it cannot be restarted), a failed actor or shield aborts."""
-        cfg, _ = self.train_config(counts[-1], None, "sys-in")
+    def _inprocess_system(self, counts: list[int], method: str):
+        """Steps/s (and the learner's update share) with the services as
+        threads; a failed learner thread is reported (it cannot be
+        restarted), a failed actor or shield aborts."""
+        cfg, _ = self.train_config(counts[-1], None, "sys-in", method=method)
         bus = Bus.open(inprocess=True)
         group = ServiceThreads(threading.Event())
 
@@ -462,21 +502,56 @@ class SystemBench:
 
         meter = StepMeter(cfg.run_id)
         bus.subscribe(keys.status_all(cfg.run_id), meter.on_status)
-        out, failures, have = {}, {}, 0
+        out, busy, failures, have = {}, {}, {}, 0
         try:
             group.start(ShieldService(cfg, bus, 0, stop=group.stop), stop_all_on_error=False)
             group.start(LearnerService(cfg, bus, 0, stop=group.stop), stop_all_on_error=False)
             for n in counts:
-                self.log(f"bench: whole system in-process, {n} actor thread(s)")
+                self.log(f"bench: whole system in-process ({method}), {n} actor thread(s)")
                 for i in range(have, n):
                     group.start(ActorService(cfg, bus, i, stop=group.stop), stop_all_on_error=False)
                 have = n
                 out[n] = meter.measure(n, self.cfg.warmup_s, self.cfg.measure_s, self.cfg.start_timeout_s, alive)
+                busy[n] = meter.window_rates.get("learner/update_s")
                 failures[n] = [f"{who}: {exc!r}"[:300] for who, exc in group.errors]
         finally:
             group.join(15)
             bus.close()
-        return out, failures
+        return out, busy, failures
+
+    # ------------------------------------------------------------- phase 3: shield shards
+    def shards_phase(self) -> dict:
+        """``k`` shield shard processes and ``n`` unpaced actor processes (no
+        learner; the bench feeds parameters): actor steps/s and QPs/s served."""
+        out: dict[str, dict] = {}
+        for k in sorted(set(self.cfg.shard_counts)):
+            for n in sorted(set(self.cfg.shard_actor_counts)):
+                if k > n:
+                    continue
+                port = free_tcp_port()
+                connect = [f"tcp/127.0.0.1:{port}"]
+                cfg, path = self.train_config(n, connect, f"shard{k}", unpaced=True, shields=k)
+                self.log(f"bench: {k} shield shard(s), {n} actor process(es)")
+                self.supervise([router_spec(port), *service_specs(path, roles=("shield", "actor"),
+                                                                  actor_ids=range(n), shields=k)],
+                               Path(cfg.run_dir))
+                bus = Bus.open(connect=connect, mode="client")
+                feeder = None
+                try:
+                    meter = StepMeter(cfg.run_id)
+                    bus.subscribe(keys.status_all(cfg.run_id), meter.on_status)
+                    feeder = _Repeater(self._learner(cfg, bus).publish_params, 0.5)
+                    steps = meter.measure(n, self.cfg.warmup_s, self.cfg.measure_s, self.cfg.start_timeout_s,
+                                          self.check)
+                    qps = {key.split("/")[1]: v for key, v in meter.window_rates.items() if key.startswith("shield/")}
+                finally:
+                    if feeder is not None:
+                        feeder.stop()
+                    bus.close()
+                    self.stop_all()
+                out.setdefault(str(k), {})[str(n)] = {"actor_env_steps_per_s": steps,
+                                                      "qps_served": sum(qps.values()), "qps_per_shard": qps}
+        return out
 
     # ------------------------------------------------------------- all
     def run(self) -> dict:
@@ -484,10 +559,15 @@ class SystemBench:
         out = {"bench": "system", "config": asdict(self.cfg),
                "host": {"cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()}}
         try:
+            # the one-core raw physics bound of the actors' batch, measured here
+            raw = bench_env(self.cfg.scenario, num_envs=self.cfg.envs_per_actor, steps=50, seed=self.cfg.seed)
+            self.physics_bound = float(raw["raw_physics_env_steps_per_s"])
+            out["physics_bound_env_steps_per_s"] = self.physics_bound
             out.update(self.services_phase())
             out["ratio_target"] = RATIO_TARGET
             out["meets_target"] = bool(out["ratio_vs_local_qp"] >= RATIO_TARGET)
-            out.update(self.system_phase())
+            out["system"] = {m: self.system_phase(m) for m in self.cfg.methods}
+            out["shards"] = self.shards_phase()
         finally:
             self.stop_all()
         out["wall_s"] = time.monotonic() - t0
@@ -520,7 +600,11 @@ def register(commands, bench) -> None:
     p.add_argument("--json", action="store_true", help="print the result as JSON (default: a short table)")
     p.add_argument("--quick", action="store_true", help="smallest run (CI smoke): 1 actor, 2 batch sizes, 2 s windows")
     p.add_argument("--scenario", default=d.scenario, choices=sorted(SCENARIOS))
-    p.add_argument("--method", default=d.method, choices=METHODS)
+    p.add_argument("--method", default=d.method, choices=METHODS, help="method of the shield/actor phases")
+    p.add_argument("--methods", default=",".join(d.methods), help="methods of the whole-system phases, e.g. happo,sage")
+    p.add_argument("--shards", default=",".join(map(str, d.shard_counts)), help="shield shard counts, e.g. 1,2")
+    p.add_argument("--shard-actors", default=",".join(map(str, d.shard_actor_counts)),
+                   help="actor counts of the shard phase, e.g. 2,4")
     p.add_argument("--envs-per-actor", type=positive_int, default=d.envs_per_actor)
     p.add_argument("--actors", default=",".join(map(str, d.actor_counts)), help="actor counts, e.g. 1,2")
     p.add_argument("--batch-sizes", default=",".join(map(str, d.batch_sizes)))
@@ -534,6 +618,9 @@ def register(commands, bench) -> None:
 def config_from_args(args) -> SystemBenchConfig:
     cfg = SystemBenchConfig(scenario=args.scenario, method=args.method, envs_per_actor=args.envs_per_actor,
                             actor_counts=tuple(int_list(args.actors, minimum=1, name="--actors")),
+                            methods=tuple(m.strip() for m in args.methods.split(",") if m.strip()),
+                            shard_counts=tuple(int_list(args.shards, minimum=1, name="--shards")),
+                            shard_actor_counts=tuple(int_list(args.shard_actors, minimum=1, name="--shard-actors")),
                             batch_sizes=tuple(int_list(args.batch_sizes, minimum=1, name="--batch-sizes")),
                             measure_s=args.seconds)
     if args.quick:
@@ -561,12 +648,25 @@ def cmd_bench_system(args) -> int:
     return 0
 
 
+def _share(x) -> str:
+    return f"{x:5.2f}" if x is not None else "    -"
+
+
 def summary_table(r: dict) -> str:
-    lines = ["env steps/s      multi-process   in-process"]
-    for n, v in r["env_steps_per_s"].items():
-        note = f"   restarts {v['restarts']}" if v.get("restarts") else ""
-        note += f"   in-process failures {v['inprocess_failures']}" if v.get("inprocess_failures") else ""
-        lines.append(f"  {n} actor(s)      {v['multiprocess']:12.1f} {v['inprocess']:12.1f}{note}")
+    lines = [f"raw physics bound (1 core): {r['physics_bound_env_steps_per_s']:.0f} env steps/s",
+             "env steps/s            multi-process (x bound, learner busy)   in-process (x bound, learner busy)"]
+    for method, by_n in r["system"].items():
+        for n, v in by_n.items():
+            note = f"   restarts {v['restarts']}" if v.get("restarts") else ""
+            note += f"   in-process failures {v['inprocess_failures']}" if v.get("inprocess_failures") else ""
+            lines.append(f"  {method:<9} {n} actor(s) {v['multiprocess']:9.1f} ({v['multiprocess_ratio_to_physics_bound']:.2f}, "
+                         f"{_share(v['learner_update_share'])})      {v['inprocess']:9.1f} "
+                         f"({v['inprocess_ratio_to_physics_bound']:.2f}, {_share(v['inprocess_learner_update_share'])})"
+                         f"{note}")
+    lines.append("shield shards          actor env steps/s   QPs/s served")
+    for k, by_n in r["shards"].items():
+        for n, v in by_n.items():
+            lines.append(f"  {k} shard(s), {n} actors {v['actor_env_steps_per_s']:12.1f} {v['qps_served']:12.1f}")
     lines.append("shield RTT ms     p50 / p99 (process)   p50 / p99 (in-process)   local QP p50 / p99")
     for B, v in r["shield_rtt_ms"].items():
         lines.append(f"  B={B:<5}        {v['p50']:7.3f} / {v['p99']:7.3f}     {v['inprocess_p50']:7.3f} / "

@@ -1,5 +1,5 @@
 """Actor service: K environments, newest parameters, one batched shield query
-per step, trajectory chunks every ``chunk_len`` steps.
+per step (per env group), trajectory chunks every ``chunk_len`` steps.
 
 Per step (Eq. action_chain): ``common.policy.rollout.propose`` gives a_ST, the
 proposal center a_bar (SAIL map with the learner's kappa in SAIL methods,
@@ -9,13 +9,23 @@ unshielded HAPPO executes a_prop. Fail closed: without a shield answer
 nothing is executed; the step is retried, counted, and after
 ``actor.unhealthy_after_s`` the actor reports itself unhealthy (status,
 metric, log) and, if configured, exits with code 3.
+
+Pipelining (``actor.pipeline``, Sample Factory's double-buffered sampling):
+the K envs are two groups. Both groups propose with the same parameters;
+group 0's query goes out first, group 1 proposes while it is at the shield,
+then group 0 steps physics while group 1's query is out. Queries of one actor
+are sent one after the other (one worker thread), so its shard never holds
+more than one of them. The step's chunk record is the two groups side by side
+(group 0's envs first), so the learner sees the same chunks either way.
 """
 from __future__ import annotations
 
+import functools
 import os
 import threading
 import time
 from collections import defaultdict, deque
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -47,10 +57,16 @@ class ActorService(Service):
     def __init__(self, cfg, bus, member_id=0, registry=None, stop=None, env=None, propose=None):
         super().__init__(cfg, bus, member_id, registry, stop)
         self.actor_id = int(member_id)
-        self.env = env
+        # one env, or the env groups of a pipelined actor (tests inject either)
+        self.envs = None if env is None else list(env) if isinstance(env, (list, tuple)) else [env]
         self._propose = propose if propose is not None else default_propose
         spec = method_spec(cfg.method)
         self.shielded, self.uses_sail = spec.shielded, spec.uses_sail
+        self.shield_key = keys.shield(cfg.run_id, cfg.shield_shard(self.actor_id))
+        self.pipelined = (cfg.actor.pipeline and self.shielded and cfg.envs_per_actor >= 2
+                          if self.envs is None else len(self.envs) > 1)
+        self._queries = ThreadPoolExecutor(1, thread_name_prefix=f"actor{self.actor_id}-shield") \
+            if self.pipelined else None
         self.rng = np.random.default_rng([cfg.seed, 1000 + self.actor_id])
         # parameters: written by the subscriber thread, adopted by the loop
         self._lock = threading.Lock()
@@ -68,7 +84,7 @@ class ActorService(Service):
         self.steps_discarded = 0
         self._chaos = (np.random.default_rng([cfg.seed, 2000 + self.actor_id, os.getpid()])
                        if cfg.actor.chaos_crash_prob > 0 else None)
-        self.obs_dim: int | None = env.obs_dim if env is not None else None   # set with the env in run()
+        self.obs_dim: int | None = self.envs[0].obs_dim if self.envs else None   # set with the envs in run()
         self._sent_versions: deque[tuple[int, str]] = deque(maxlen=16)
 
     # ------------------------------------------------------------- parameters
@@ -133,7 +149,7 @@ class ActorService(Service):
         (common/shield/verify.py); retries until one does. Returns None only if a
         stop was requested (then nothing is executed)."""
         payload = self.encode("shield_req", {"a_prop": a_prop, **rows.as_dict()})
-        key = keys.shield(self.cfg.run_id)
+        key = self.shield_key
         acfg = self.cfg.actor
         first_fail = None
         backoff = 0.01
@@ -190,12 +206,18 @@ class ActorService(Service):
             self.log.warning("refused a shield answer from %s (%s, #%d); nothing executed", sender, reason, n)
 
     # ------------------------------------------------------------- loop
-    def _make_env(self):
-        return BatchEnv(self.cfg.env_config(), self.cfg.envs_per_actor, seed=self.cfg.seed * 1000 + self.actor_id)
+    def _make_envs(self) -> list:
+        """One BatchEnv of K envs, or a pipelined actor's two groups (K - K//2 and
+        K//2 envs) with seed streams of their own."""
+        cfg, seed = self.cfg, self.cfg.seed * 1000 + self.actor_id
+        K = cfg.envs_per_actor
+        if not self.pipelined:
+            return [BatchEnv(cfg.env_config(), K, seed=seed)]
+        return [BatchEnv(cfg.env_config(), n, seed=[seed, g]) for g, n in enumerate((K - K // 2, K // 2))]
 
     def run(self) -> int:
-        env = self.env if self.env is not None else self._make_env()
-        self.obs_dim = int(env.obs_dim)
+        envs = self.envs if self.envs is not None else self._make_envs()
+        self.obs_dim = int(envs[0].obs_dim)
         self.bus.subscribe(keys.params(self.cfg.run_id), self._on_params)
         self.listen_control()
         self.m.healthy.labels(**self.labels).set(1)
@@ -214,16 +236,18 @@ class ActorService(Service):
             self.stop.wait(0.02)
         self.state = "running"
         try:
-            self._rollout(env)
+            self._rollout(envs)
         except ActorUnhealthy:
             return EXIT_UNHEALTHY
         finally:
+            if self._queries is not None:
+                self._queries.shutdown(wait=True)   # a pending query returns None once stop is set
             self.state = "stopped"
             self.publish_status(force=True)
         return 0
 
-    def _rollout(self, env) -> None:
-        out = env.reset()
+    def _rollout(self, envs: list) -> None:
+        outs = [e.reset() for e in envs]
         buf: dict[str, list] = {k: [] for k in wire.TRAJ_STEP_FIELDS}
         versions: list[int] = []
         episodes: list[dict] = []
@@ -242,37 +266,19 @@ class ActorService(Service):
                 buf = {k: [] for k in wire.TRAJ_STEP_FIELDS}
                 versions, episodes = [], []
             chunk_incarnation = p["incarnation"]
-            kappa = float(p["settings"].get("kappa", 0.0)) if self.uses_sail else 0.0
-            rows = SafetyRows.of(out)
-            prop = self._propose(p["params"], out["obs"], rows, out["human_action"], self.rng, "train",
-                                 kappa=kappa, use_sail=self.uses_sail)
-            a_prop = np.asarray(prop["a_prop"], dtype=np.float64)
-            if self.shielded:
-                answer = self.filter_actions(a_prop, rows)
-                if answer is None:  # stopping: nothing executed
-                    return
-                a_exec, shield_status = answer
-            else:
-                a_exec, shield_status = a_prop, np.full(len(a_prop), UNSHIELDED)
-            if self._chaos is not None and self._chaos.random() < self.cfg.actor.chaos_crash_prob:
-                self.log.error("chaos: crashing on purpose (actor.chaos_crash_prob)")
-                os._exit(EXIT_CHAOS)   # like a killed process: no cleanup, no last chunk
-            nxt = env.step(a_exec)
-            step = {"obs": out["obs"], "state": out["state"], "C": out["C"], "c": out["c"],
-                    "row_mask": out["row_mask"], "fixed_mask": out["fixed_mask"],
-                    "a_st": prop["a_st"], "a_bar": prop["a_bar"], "a_prop": a_prop, "a_exec": a_exec,
-                    "shield_status": shield_status,
-                    "logp": prop["logp"], "leaf": prop["leaf"], "reward": nxt["reward"],
-                    "terminated": nxt["terminated"], "truncated": nxt["truncated"],
-                    "final_state": nxt["final_state"], "final_obs": nxt["final_obs"]}
+            stepped = self._step_groups(envs, outs, p)
+            if stepped is None:   # stopping: the partial chunk is dropped
+                return
+            records, outs = stepped
             for k in wire.TRAJ_STEP_FIELDS:  # copy: envs may reuse their output buffers
-                buf[k].append(np.array(step[k], copy=True))
+                buf[k].append(np.concatenate([np.asarray(r[k]) for r in records]) if len(records) > 1
+                              else np.array(records[0][k], copy=True))
             versions.append(p["version"])
-            K = a_exec.shape[0]
+            K = sum(len(r["a_exec"]) for r in records)
             self.env_steps += K
             self.steps_rate.add(self.env_steps)
             self.m.env_steps.labels(**self.labels).inc(K)
-            for ep in nxt.get("episodes", []):
+            for ep in (ep for nxt in outs for ep in nxt.get("episodes", [])):
                 # numbers only; non-finite entries (completion_time of a failed
                 # episode is NaN) are left out rather than failing the chunk
                 ep = {k: float(v) for k, v in ep.items()
@@ -283,12 +289,55 @@ class ActorService(Service):
                     self.recent_success.append(ep["success"])
             if self.recent_success:
                 self.m.success_rate.labels(**self.labels).set(float(np.mean(self.recent_success)))
-            out = nxt
             if len(versions) == T:
-                self._publish_chunk(buf, versions, episodes, out)
+                last = {k: np.concatenate([np.asarray(o[k]) for o in outs]) for k in ("state", "obs")}
+                self._publish_chunk(buf, versions, episodes, last)
                 buf = {k: [] for k in wire.TRAJ_STEP_FIELDS}
                 versions, episodes = [], []
             self.publish_status()
+
+    def _step_groups(self, envs: list, outs: list[dict], p: dict) -> tuple[list[dict], list[dict]] | None:
+        """One step of every env group with parameters ``p`` (Eq. action_chain):
+        all groups propose and send their queries first, then each waits for
+        its verified answer and steps physics, so a pipelined actor's group 0
+        steps while group 1's query is out. Returns the per-group step records
+        and next outputs, or None if stopping (nothing more is executed)."""
+        kappa = float(p["settings"].get("kappa", 0.0)) if self.uses_sail else 0.0
+        sent = []
+        for out in outs:
+            rows = SafetyRows.of(out)
+            prop = self._propose(p["params"], out["obs"], rows, out["human_action"], self.rng, "train",
+                                 kappa=kappa, use_sail=self.uses_sail)
+            a_prop = np.asarray(prop["a_prop"], dtype=np.float64)
+            if not self.shielded:
+                answer = None
+            elif self._queries is not None:   # pipelined: the query goes out now
+                answer = self._queries.submit(self.filter_actions, a_prop, rows).result
+            else:                              # synchronous: asked when it is needed
+                answer = functools.partial(self.filter_actions, a_prop, rows)
+            sent.append((prop, a_prop, answer))
+        if self._chaos is not None and self._chaos.random() < self.cfg.actor.chaos_crash_prob:
+            self.log.error("chaos: crashing on purpose (actor.chaos_crash_prob)")
+            os._exit(EXIT_CHAOS)   # like a killed process: no cleanup, no last chunk
+        records, nxts = [], []
+        for env, out, (prop, a_prop, answer) in zip(envs, outs, sent):
+            if answer is None:
+                a_exec, shield_status = a_prop, np.full(len(a_prop), UNSHIELDED)
+            else:
+                verified = answer()
+                if verified is None:
+                    return None
+                a_exec, shield_status = verified
+            nxt = env.step(a_exec)
+            records.append({"obs": out["obs"], "state": out["state"], "C": out["C"], "c": out["c"],
+                            "row_mask": out["row_mask"], "fixed_mask": out["fixed_mask"],
+                            "a_st": prop["a_st"], "a_bar": prop["a_bar"], "a_prop": a_prop, "a_exec": a_exec,
+                            "shield_status": shield_status,
+                            "logp": prop["logp"], "leaf": prop["leaf"], "reward": nxt["reward"],
+                            "terminated": nxt["terminated"], "truncated": nxt["truncated"],
+                            "final_state": nxt["final_state"], "final_obs": nxt["final_obs"]})
+            nxts.append(nxt)
+        return records, nxts
 
     def _pace(self) -> None:
         """Before a new chunk: wait while ``max_chunks_ahead`` chunks already

@@ -208,6 +208,7 @@ class LearnerService(Service):
         self._t_params = -1e9
         self.log_rows: MetricsLog | None = None
         self.last_deploy_sr: float | None = None   # newest deployment probe (status line)
+        self.update_s_total = 0.0   # seconds inside method.update (the rest of the loop waits for data)
 
     # ------------------------------------------------------------- status
     def status_fields(self) -> dict:
@@ -215,6 +216,7 @@ class LearnerService(Service):
         extra = {f"chunks_{k}": float(v) for k, v in self.counts.items()}
         extra["unfiltered_steps"] = float(self.unfiltered_steps)
         extra["queue_depth"] = float(self.chunks.qsize())
+        extra["update_s_total"] = self.update_s_total
         if self.last_deploy_sr is not None and np.isfinite(self.last_deploy_sr):
             extra["deploy_sr"] = float(self.last_deploy_sr)
         return {"version": self.version, "env_steps": self.env_steps, "updates": self.updates,
@@ -408,6 +410,7 @@ class LearnerService(Service):
         t0 = time.perf_counter()
         diag = self.method.update(batch, self.progress())
         dt = time.perf_counter() - t0
+        self.update_s_total += dt
         self.updates += 1
         self.version += 1
         self.env_steps += steps

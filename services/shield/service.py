@@ -1,5 +1,7 @@
-"""Shield service: one Zenoh queryable that micro-batches the actors' CBF-QP
-requests into one ``solve_cbf_qp`` call (Eq. qpshield) and replies per request.
+"""Shield service: one Zenoh queryable (shard ``k`` of ``shields``, key
+``sage/<run>/shield/<k>``, asked by actors ``i % shields == k``) that
+micro-batches its actors' CBF-QP requests into one ``solve_cbf_qp`` call
+(Eq. qpshield) and replies per request.
 
 Batching rule: after the first waiting request arrives, keep collecting for
 at most ``shield.window_s`` or until ``shield.max_batch`` QP rows are queued,
@@ -61,7 +63,7 @@ class ShieldService(Service):
 
     def run(self) -> int:
         self.warm_up()
-        self._queue = q = self.bus.serve(keys.shield(self.cfg.run_id), maxsize=self.cfg.shield.max_queue,
+        self._queue = q = self.bus.serve(keys.shield(self.cfg.run_id, self.member_id), maxsize=self.cfg.shield.max_queue,
                                          on_full=self._on_full)
         self.listen_control()
         self.state = "running"
@@ -76,9 +78,11 @@ class ShieldService(Service):
             good: list[tuple[Request, dict]] = []
             rows = self._admit(first, good)
             deadline = time.perf_counter() + self.cfg.shield.window_s
-            # Every actor sends one request per env step, so once one request
-            # per actor is queued nobody else is coming: close the window early.
-            expected = max(1, int(self.cfg.actors))
+            # Every actor of this shard has at most one request waiting (a
+            # pipelined actor sends its second group's only after the first
+            # group's answer), so once one per actor is queued nobody else is
+            # coming: close the window early.
+            expected = max(1, self.cfg.actors_of_shard(self.member_id))
             while rows < self.cfg.shield.max_batch and len(batch) < expected:
                 remaining = deadline - time.perf_counter()
                 try:
