@@ -32,6 +32,15 @@ def traj_all(run_id: str) -> str:
     return f"{run_root(run_id)}/traj/*"
 
 
+def trace(run_id: str, actor_id: int | str) -> str:
+    """Thinned decision traces of one actor (pub/sub, ``actor.trace_every``)."""
+    return f"{run_root(run_id)}/trace/{check_id(actor_id, 'actor id')}"
+
+
+def trace_all(run_id: str) -> str:
+    return f"{run_root(run_id)}/trace/*"
+
+
 def params(run_id: str) -> str:
     """Parameter broadcasts from the learner (pub/sub)."""
     return f"{run_root(run_id)}/params"

@@ -244,13 +244,15 @@ class Bus:
         so a caller that checks answers takes the first that passes. Zenoh's
         defaults (best-matching target, replies consolidated by key) would let one
         bad queryable answering on the same key hide the good one's answer.
-        Ends when the query is finalized or times out."""
-        for r in self._session.get(key, payload=payload, timeout=float(timeout), target=zenoh.QueryTarget.ALL,
-                                   consolidation=zenoh.ConsolidationMode.NONE):
-            if r.ok is not None:
-                yield Reply(ok=r.ok.payload.to_bytes())
-            else:
-                yield Reply(err=r.err.payload.to_bytes())
+        Ends when the query is finalized or times out.
+
+        The get is sent when this is called, not when iteration starts:
+        replies queue up in Zenoh's channel meanwhile, so a caller can send
+        several queries and then collect them (the pipelined actor)."""
+        handler = self._session.get(key, payload=payload, timeout=float(timeout), target=zenoh.QueryTarget.ALL,
+                                    consolidation=zenoh.ConsolidationMode.NONE)
+        return (Reply(ok=r.ok.payload.to_bytes()) if r.ok is not None else Reply(err=r.err.payload.to_bytes())
+                for r in handler)
 
     def close(self) -> None:
         with self._lock:

@@ -205,6 +205,18 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         "batch_size": Scalar("int", lo=0),   # rows in the micro-batch this request rode in
         "solve_s": Scalar("float"),          # wall time of that solve_cbf_qp call
     },
+    # Actor -> watchers (`sage watch`), on sage/<run>/trace/<actor_id>: one step
+    # in `every` of the actor's decisions (actor.trace_every), for live audits.
+    "trace": {
+        "actor_id": Scalar("int", lo=0),
+        "version": Scalar("int", lo=0),      # parameter version the step was decided with
+        "env_steps": Scalar("int", lo=0),    # actor's cumulative env steps at that step
+        "every": Scalar("int", lo=1),        # thinning: this is one step in `every`
+        "leaf": Arr("int", ("K", N_CARRIERS), send="i4"),            # active leaf per carrier
+        "nodes": Arr("int", ("K", N_CARRIERS, "D"), send="i4"),      # predicate path: node ids, root first
+        "sides": Arr("bool", ("K", N_CARRIERS, "D")),                # branch taken at each (True = w.o > b)
+        "correction_norm": Arr("float", ("K",)),                     # ||a_exec - a_prop||: the QP's correction
+    },
     # Heartbeat, every service, on sage/<run>/status/<role>/<id>.
     "status": {
         "role": Scalar("str"),               # shield | actor | learner

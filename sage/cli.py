@@ -20,7 +20,7 @@ import argparse
 import os
 import sys
 
-from sage import audit_commands, env_commands, evaluate, report, suite, train
+from sage import audit_commands, env_commands, evaluate, report, suite, train, watch
 from sage.errors import UsageError
 from sage.bench import env as bench_env
 from sage.bench import learner as bench_learner
@@ -35,6 +35,7 @@ COMMAND_MODULES = [
     report,           # sage report
     env_commands,     # sage env render
     audit_commands,   # sage tree, sage trace, sage audit, sage export-bundle
+    watch,            # sage watch
     bench_qp,         # sage bench qp
     bench_env,        # sage bench env, sage bench scripted
     bench_learner,    # sage bench learner

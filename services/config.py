@@ -91,7 +91,11 @@ class ActorConfig:
     # group steps physics. Same chunks (all K envs, one version per step), same
     # fail-closed rules; only the order of waiting changes. Needs K >= 2 and a
     # shielded method (without a shield there is no round trip to hide).
-    pipeline: bool = True
+    pipeline: bool = False
+    # Live decision stream (`sage watch RUN`): every this many steps the actor
+    # publishes the step's leaves, predicate paths and QP correction norms on
+    # sage/<run>/trace/<actor>. 0 = off; 10 costs one small message per 10 steps.
+    trace_every: int = 0
 
 
 @dataclass
@@ -213,6 +217,8 @@ class TrainConfig:
             raise ValueError("actor.chaos_crash_prob needs --mode supervised (a crashed thread is not restarted)")
         if not self.actor.verify_tol > 0 or self.learner_queue_chunks < 1:
             raise ValueError("actor.verify_tol must be > 0 and learner_queue_chunks >= 1")
+        if self.actor.trace_every < 0:
+            raise ValueError(f"actor.trace_every must be >= 0 (0 = off), got {self.actor.trace_every}")
         if self.actor.max_chunks_ahead < 1:
             raise ValueError(f"actor.max_chunks_ahead must be >= 1, got {self.actor.max_chunks_ahead}")
         if self.method not in ALL_METHODS:

@@ -62,7 +62,8 @@ def fake_propose(params, obs, rows, human_action, rng, mode="train", *, kappa=0.
     a_bar = a_st.copy()
     a_prop = np.clip(a_bar + 0.3 * rng.normal(size=a_bar.shape), -1, 1) if mode == "train" else a_st
     return {"a_st": a_st, "a_bar": a_bar, "a_prop": a_prop, "logp": np.zeros((K, N)),
-            "leaf": np.zeros((K, N), np.int64), "nodes": None, "sides": None}
+            "leaf": np.zeros((K, N), np.int64), "nodes": np.zeros((K, N, 1), np.int64),
+            "sides": np.zeros((K, N, 1), bool)}
 
 
 def fake_solve(a_prop, rows):

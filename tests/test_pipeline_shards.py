@@ -52,6 +52,7 @@ def test_pipelined_chunks_carry_each_steps_version(tmp_path):
     actor = ActorService(cfg, bus, 0, stop=stop, env=groups, propose=fake_propose)
     assert actor.pipelined
     threading.Thread(target=actor.run, daemon=True).start()
+    wait_for(lambda: actor.state == "waiting")   # subscribed to parameters
     m = FakeMethod()
     try:
         for version in range(4):
@@ -80,7 +81,7 @@ def test_unshielded_or_single_env_actors_do_not_pipeline(tmp_path):
     assert not ActorService(cfg, Bus.open(inprocess=True), 0).pipelined
     one = make_cfg(tmp_path, envs_per_actor=1)
     assert not ActorService(one, Bus.open(inprocess=True), 0).pipelined
-    two = ActorService(make_cfg(tmp_path, envs_per_actor=5), Bus.open(inprocess=True), 0)
+    two = ActorService(make_cfg(tmp_path, envs_per_actor=5, actor=ActorConfig(pipeline=True)), Bus.open(inprocess=True), 0)
     assert two.pipelined and [e.K for e in two._make_envs()] == [3, 2]
 
 
@@ -97,9 +98,11 @@ def test_shards_bind_actors_by_id_and_each_serves_its_own(tmp_path):
                         solve=fake_solve, timeout_s=60)
     assert out["updates"] == 3
     rows = [sh["rows"] for sh in out["shields"]]
-    # shard 0 answered actors 0 and 2, shard 1 actor 1: every executed step went through its shard
-    assert rows[0] == len(envs[0].executed) * 2 + len(envs[2].executed) * 2
-    assert rows[1] == len(envs[1].executed) * 2 > 0
+    # shard 0 answered actors 0 and 2, shard 1 actor 1: every executed step went through its
+    # shard (plus at most one answered query per actor that the stop left unexecuted)
+    executed = [len(e.executed) * 2 for e in envs]
+    assert 0 <= rows[0] - executed[0] - executed[2] <= 2 * 2
+    assert 0 <= rows[1] - executed[1] <= 2 and executed[1] > 0
 
 
 @pytest.mark.parametrize("bad, why", [(dict(actors=1, shields=2), "shields"),

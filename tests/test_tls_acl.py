@@ -348,7 +348,7 @@ def test_access_control_matches_role_table(tmp_path):
 
     root = f"sage/{RUN}"
     assert allowed("learner", "put", "ingress") == [f"{root}/params", f"{root}/status/learner/*"]
-    assert allowed("actor", "put", "ingress") == [f"{root}/status/actor/*", f"{root}/traj/*"]
+    assert allowed("actor", "put", "ingress") == [f"{root}/status/actor/*", f"{root}/trace/*", f"{root}/traj/*"]
     assert allowed("actor", "query", "ingress") == [f"{root}/shield/*"]
     assert allowed("actor", "declare_queryable", "ingress") == []
     assert allowed("actor", "reply", "ingress") == []

@@ -22,7 +22,9 @@ to its in-process twin.
   (``echo`` child, same host, same clock), beside the in-process delivery.
 * ``ratio_vs_local_qp``: steps/s of one actor process with the shield service
   in the loop divided by the same actor with a local in-process QP call
-  (``LocalQPActor``, synchronous) -- no learner, parameters from the bench.
+  (``LocalQPActor``, synchronous) -- no learner, parameters from the bench;
+  ``pipelining_gain``: the same actor pipelined (``actor.pipeline``, the
+  default) over synchronous, both with the shield service.
 
 Child entry points of the bench (also run under the supervisor):
 ``python -m sage.bench.system local-actor --config RUN.json --actor-id I``
@@ -183,7 +185,7 @@ class LocalQPActor(ActorService):
     def __init__(self, cfg, *args, **kw):
         super().__init__(replace(cfg, actor=replace(cfg.actor, pipeline=False)), *args, **kw)
 
-    def filter_actions(self, a_prop, rows: SafetyRows):
+    def filter_actions(self, a_prop, rows: SafetyRows, asked=None):
         t0 = time.perf_counter()
         res = shield_actions(a_prop, rows, backend=self.cfg.shield.backend)
         self.rtt.add(time.perf_counter() - t0)
@@ -407,9 +409,11 @@ class SystemBench:
             meter = StepMeter(cfg.run_id)
             bus.subscribe(keys.status_all(cfg.run_id), meter.on_status)
             feeder = _Repeater(learner.publish_params, 0.5)  # actors wait for parameters
+            sync_path = replace(cfg, actor=replace(cfg.actor, pipeline=False)).save(run / "config-sync.json")
             actor = {"local_qp": [sys.executable, "-m", "sage.bench.system", "local-actor",
                                   "--config", str(path), "--actor-id", "0"],
-                     "shield_service": service_specs(path, roles=("actor",), actor_ids=[0])[0].argv}
+                     "shield_service": service_specs(path, roles=("actor",), actor_ids=[0])[0].argv,
+                     "shield_service_sync": service_specs(sync_path, roles=("actor",), actor_ids=[0])[0].argv}
             rates = {}
             try:
                 for kind, argv in actor.items():
@@ -448,7 +452,8 @@ class SystemBench:
                                        "inprocess_p50": params_in["p50"], "inprocess_p99": params_in["p99"],
                                        "bytes": self._params_bytes(learner, cfg.run_id), "broadcasts": params["n"]},
                 "actor_steps_per_s": rates,
-                "ratio_vs_local_qp": rates["shield_service"] / rates["local_qp"]}
+                "ratio_vs_local_qp": rates["shield_service"] / rates["local_qp"],
+                "pipelining_gain": rates["shield_service"] / rates["shield_service_sync"]}
 
     # ------------------------------------------------------------- phase 2: the whole system
     def system_phase(self, method: str) -> dict:
@@ -675,7 +680,8 @@ def summary_table(r: dict) -> str:
     lines.append(f"param broadcast   p50 {pb['p50']:.3f} ms  p99 {pb['p99']:.3f} ms  "
                  f"(in-process {pb['inprocess_p50']:.3f} / {pb['inprocess_p99']:.3f}; {pb['bytes']} B)")
     a = r["actor_steps_per_s"]
-    lines.append(f"one actor steps/s: shield service {a['shield_service']:.1f}, local QP {a['local_qp']:.1f}, "
+    lines.append(f"one actor steps/s: shield service {a['shield_service']:.1f} (synchronous "
+                 f"{a.get('shield_service_sync', float('nan')):.1f}), local QP {a['local_qp']:.1f}, "
                  f"ratio {r['ratio_vs_local_qp']:.2f} (target >= {r['ratio_target']})")
     return "\n".join(lines)
 

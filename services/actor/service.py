@@ -12,20 +12,18 @@ metric, log) and, if configured, exits with code 3.
 
 Pipelining (``actor.pipeline``, Sample Factory's double-buffered sampling):
 the K envs are two groups. Both groups propose with the same parameters;
-group 0's query goes out first, group 1 proposes while it is at the shield,
-then group 0 steps physics while group 1's query is out. Queries of one actor
-are sent one after the other (one worker thread), so its shard never holds
-more than one of them. The step's chunk record is the two groups side by side
-(group 0's envs first), so the learner sees the same chunks either way.
+group 0's query goes out first (a Zenoh get returns at once; its replies
+queue up), group 1 proposes while it is at the shield, then group 0 steps
+physics while group 1's query is out. No threads: the only concurrency is
+the shield's and the network's. The step's chunk record is the two groups
+side by side (group 0's envs first), so the learner sees the same chunks.
 """
 from __future__ import annotations
 
-import functools
 import os
 import threading
 import time
 from collections import defaultdict, deque
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -65,8 +63,6 @@ class ActorService(Service):
         self.shield_key = keys.shield(cfg.run_id, cfg.shield_shard(self.actor_id))
         self.pipelined = (cfg.actor.pipeline and self.shielded and cfg.envs_per_actor >= 2
                           if self.envs is None else len(self.envs) > 1)
-        self._queries = ThreadPoolExecutor(1, thread_name_prefix=f"actor{self.actor_id}-shield") \
-            if self.pipelined else None
         self.rng = np.random.default_rng([cfg.seed, 1000 + self.actor_id])
         # parameters: written by the subscriber thread, adopted by the loop
         self._lock = threading.Lock()
@@ -86,6 +82,7 @@ class ActorService(Service):
                        if cfg.actor.chaos_crash_prob > 0 else None)
         self.obs_dim: int | None = self.envs[0].obs_dim if self.envs else None   # set with the envs in run()
         self._sent_versions: deque[tuple[int, str]] = deque(maxlen=16)
+        self.steps_taken = 0   # batched steps (each K env steps)
 
     # ------------------------------------------------------------- parameters
     def _on_params(self, _key: str, payload: bytes) -> None:
@@ -143,20 +140,27 @@ class ActorService(Service):
                           "K": float(self.cfg.envs_per_actor)}}
 
     # ------------------------------------------------------------- shield
-    def filter_actions(self, a_prop: np.ndarray, rows: SafetyRows) -> tuple[np.ndarray, np.ndarray] | None:
+    def ask_shield(self, a_prop: np.ndarray, rows: SafetyRows) -> tuple:
+        """Send the query for ``a_prop`` now; its replies queue up until
+        ``filter_actions(..., asked=...)`` collects them."""
+        payload = self.encode("shield_req", {"a_prop": a_prop, **rows.as_dict()})
+        return payload, time.perf_counter(), self.bus.replies(self.shield_key, payload,
+                                                               timeout=self.cfg.actor.shield_timeout_s)
+
+    def filter_actions(self, a_prop: np.ndarray, rows: SafetyRows,
+                       asked: tuple | None = None) -> tuple[np.ndarray, np.ndarray] | None:
         """Exact joint CBF-QP via the shield service: ``(a_exec, status)`` of the
         first answer that passes the actor's own check against ``rows``
-        (common/shield/verify.py); retries until one does. Returns None only if a
-        stop was requested (then nothing is executed)."""
-        payload = self.encode("shield_req", {"a_prop": a_prop, **rows.as_dict()})
-        key = self.shield_key
+        (common/shield/verify.py); asks again until one does. ``asked``: a
+        query already sent by ``ask_shield``. Returns None only if a stop was
+        requested (then nothing is executed)."""
+        payload, t0, replies = asked if asked is not None else self.ask_shield(a_prop, rows)
         acfg = self.cfg.actor
         first_fail = None
         backoff = 0.01
         while not self.stop.is_set():
-            t0 = time.perf_counter()
             why = "no reply (shield unreachable or timed out)"
-            for reply in self.bus.replies(key, payload, timeout=acfg.shield_timeout_s):
+            for reply in replies:
                 if reply.ok is None:
                     why = "shield error: " + reply.err.decode(errors="replace")[:200]
                     continue
@@ -196,6 +200,8 @@ class ActorService(Service):
             self.publish_status()
             self.stop.wait(backoff)
             backoff = min(backoff * 2, 0.5)
+            t0, replies = time.perf_counter(), self.bus.replies(self.shield_key, payload,
+                                                                timeout=acfg.shield_timeout_s)
         return None
 
     def _refuse(self, reason: str, sender: str) -> None:
@@ -240,8 +246,6 @@ class ActorService(Service):
         except ActorUnhealthy:
             return EXIT_UNHEALTHY
         finally:
-            if self._queries is not None:
-                self._queries.shutdown(wait=True)   # a pending query returns None once stop is set
             self.state = "stopped"
             self.publish_status(force=True)
         return 0
@@ -276,6 +280,9 @@ class ActorService(Service):
             versions.append(p["version"])
             K = sum(len(r["a_exec"]) for r in records)
             self.env_steps += K
+            self.steps_taken += 1
+            if self.cfg.actor.trace_every and self.steps_taken % self.cfg.actor.trace_every == 0:
+                self._publish_trace(records, p["version"])
             self.steps_rate.add(self.env_steps)
             self.m.env_steps.labels(**self.labels).inc(K)
             for ep in (ep for nxt in outs for ep in nxt.get("episodes", [])):
@@ -309,22 +316,18 @@ class ActorService(Service):
             prop = self._propose(p["params"], out["obs"], rows, out["human_action"], self.rng, "train",
                                  kappa=kappa, use_sail=self.uses_sail)
             a_prop = np.asarray(prop["a_prop"], dtype=np.float64)
-            if not self.shielded:
-                answer = None
-            elif self._queries is not None:   # pipelined: the query goes out now
-                answer = self._queries.submit(self.filter_actions, a_prop, rows).result
-            else:                              # synchronous: asked when it is needed
-                answer = functools.partial(self.filter_actions, a_prop, rows)
-            sent.append((prop, a_prop, answer))
+            # pipelined: the query goes out now; synchronous: when its answer is needed
+            asked = self.ask_shield(a_prop, rows) if self.shielded and self.pipelined else None
+            sent.append((prop, a_prop, rows, asked))
         if self._chaos is not None and self._chaos.random() < self.cfg.actor.chaos_crash_prob:
             self.log.error("chaos: crashing on purpose (actor.chaos_crash_prob)")
             os._exit(EXIT_CHAOS)   # like a killed process: no cleanup, no last chunk
         records, nxts = [], []
-        for env, out, (prop, a_prop, answer) in zip(envs, outs, sent):
-            if answer is None:
+        for env, out, (prop, a_prop, rows, asked) in zip(envs, outs, sent):
+            if not self.shielded:
                 a_exec, shield_status = a_prop, np.full(len(a_prop), UNSHIELDED)
             else:
-                verified = answer()
+                verified = self.filter_actions(a_prop, rows, asked)
                 if verified is None:
                     return None
                 a_exec, shield_status = verified
@@ -335,9 +338,19 @@ class ActorService(Service):
                             "shield_status": shield_status,
                             "logp": prop["logp"], "leaf": prop["leaf"], "reward": nxt["reward"],
                             "terminated": nxt["terminated"], "truncated": nxt["truncated"],
-                            "final_state": nxt["final_state"], "final_obs": nxt["final_obs"]})
+                            "final_state": nxt["final_state"], "final_obs": nxt["final_obs"],
+                            "nodes": prop["nodes"], "sides": prop["sides"]})   # decision traces only
             nxts.append(nxt)
         return records, nxts
+
+    def _publish_trace(self, records: list[dict], version: int) -> None:
+        """The step's decisions for `sage watch` (wire kind ``trace``)."""
+        cat = lambda k: np.concatenate([np.asarray(r[k]) for r in records])   # noqa: E731
+        body = {"actor_id": self.actor_id, "version": int(version), "env_steps": self.env_steps,
+                "every": self.cfg.actor.trace_every, "leaf": cat("leaf").astype(np.int32),
+                "nodes": cat("nodes").astype(np.int32), "sides": cat("sides").astype(bool),
+                "correction_norm": np.linalg.norm(cat("a_exec") - cat("a_prop"), axis=1)}
+        self.send(keys.trace(self.cfg.run_id, self.actor_id), "trace", body)
 
     def _pace(self) -> None:
         """Before a new chunk: wait while ``max_chunks_ahead`` chunks already
