@@ -25,6 +25,7 @@ from sage.errors import UsageError
 from sage.bench import env as bench_env
 from sage.bench import learner as bench_learner
 from sage.bench import qp as bench_qp
+from sage.bench import scaling as bench_scaling
 from sage.bench import system as bench_system
 
 # Order is the order of `sage --help`.
@@ -40,6 +41,7 @@ COMMAND_MODULES = [
     bench_env,        # sage bench env, sage bench scripted
     bench_learner,    # sage bench learner
     bench_system,     # sage bench system
+    bench_scaling,    # sage bench scaling
 ]
 
 

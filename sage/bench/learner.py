@@ -38,18 +38,21 @@ def bench_learner(T: int = 64, K: int = 32, obs_dim: int | None = None, rows: in
     cfg = AlgoConfig(seed=seed)
     task = BanditTask(obs_dim=obs_dim, seed=seed, n_rows=rows, human_rate=0.05)
     times: dict[str, list[float]] = {}
+    cpu: dict[str, list[float]] = {}   # thread CPU time: robust where the machine is loaded
     last_diag: dict[str, dict] = {}
     for name in methods:
         method = make_method(name, cfg, obs_dim, obs_dim * 3)
         # same contexts for every method (same rng seed); proposals are each method's own
         batch = collect(method, task, T, K, progress, np.random.default_rng(seed))
         method.update(batch, progress)                      # warm-up
-        times[name] = []
+        times[name], cpu[name] = [], []
         for _ in range(repeats):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.thread_time()
             last_diag[name] = method.update(batch, progress)
             times[name].append(time.perf_counter() - t0)
+            cpu[name].append(time.thread_time() - c0)
     update_s = {k: statistics.median(v) for k, v in times.items()}
+    update_cpu_s = {k: statistics.median(v) for k, v in cpu.items()}
     return {
         "bench": "learner",
         "T": T, "K": K, "samples": T * K, "obs_dim": obs_dim, "obs_dim_source": source,
@@ -58,6 +61,9 @@ def bench_learner(T: int = 64, K: int = 32, obs_dim: int | None = None, rows: in
         "update_s": update_s,
         "update_s_all": times,
         "ratio_vs_happo": {k: v / update_s["happo"] for k, v in update_s.items()},
+        "update_cpu_s": update_cpu_s,
+        "cpu_ratio_vs_happo": {k: v / update_cpu_s["happo"] for k, v in update_cpu_s.items()},
+        "samples_per_cpu_s": {k: T * K / v for k, v in update_cpu_s.items()},
         "target": "sage update <= 3x happo update",
         "sage_within_target": (update_s["sage"] / update_s["happo"] <= 3.0) if "sage" in update_s else None,
         "w_gap": {k: d.get("w_gap") for k, d in last_diag.items()},
@@ -88,5 +94,7 @@ def _bench_handler(args) -> int:
         print(f"learner update, {out['samples']} samples ({out['T']}x{out['K']}), obs_dim {out['obs_dim']}, "
               f"{out['epochs']} epochs x {out['minibatches']} minibatches")
         for name, s in out["update_s"].items():
-            print(f"  {name:10s} {s:8.3f} s   {out['ratio_vs_happo'][name]:5.2f}x happo")
+            print(f"  {name:10s} {s:8.3f} s   {out['ratio_vs_happo'][name]:5.2f}x happo   thread CPU "
+                  f"{out['update_cpu_s'][name]:7.3f} s ({out['cpu_ratio_vs_happo'][name]:5.2f}x), "
+                  f"{out['samples_per_cpu_s'][name]:7.0f} samples/CPU-s")
     return 0

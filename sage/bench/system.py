@@ -11,6 +11,11 @@ to its in-process twin.
   run). Steady state: counted from the services' ``status`` heartbeats
   (cumulative counters with the sender's clock) over ``measure_s`` after
   every actor stepped for ``warmup_s``.
+* ``router_msgs_per_s``: messages one client publishes as fast as it can,
+  delivered through the router to another client, per second
+  (``delivered`` = the fraction that arrived): ``small`` (a heartbeat's
+  size) and ``shield_request`` (an actor's request: the batch size nearest
+  ``envs_per_actor``).
 * ``shards[k][n]``: ``k`` shield shard processes serving ``n`` actor
   processes (no learner): the actors' steps/s and the QPs/s the shards served.
 * ``shield_rtt_ms[B]``: round trip of one batched request of ``B`` QPs to the
@@ -132,6 +137,8 @@ class StepMeter:
                 self.counters["learner/update_s"] = (msg.t, float(extra["update_s_total"]))
             elif b["role"] == "shield" and "rows" in extra:
                 self.counters[f"shield/{b['id']}/rows"] = (msg.t, float(extra["rows"]))
+                if "busy_s_total" in extra:
+                    self.counters[f"shield/{b['id']}/busy_s"] = (msg.t, float(extra["busy_s_total"]))
 
     def snapshot(self) -> dict[str, tuple[float, int]]:
         with self._lock:
@@ -241,7 +248,7 @@ class SystemBench:
 
     # ------------------------------------------------------------- helpers
     def train_config(self, actors: int, connect: list[str] | None, tag: str, unpaced: bool = False,
-                     method: str | None = None, shields: int = 1):
+                     method: str | None = None, shields: int = 1, learner_defaults: bool = False):
         """A run config for one phase; one chunk per update, so the learner's
         batch does not depend on how many actors are up yet. ``unpaced``: the
         actor never waits for the learner (phase 1 has none: it measures the
@@ -254,7 +261,10 @@ class SystemBench:
                           chunk_len=self.cfg.chunk_len, chunks_per_update=1, updates=1_000_000,
                           status_period_s=0.2, eval_episodes=0, checkpoint_every=1_000_000, seed=self.cfg.seed,
                           deploy_probe_every=0,   # a probe would pause the learner mid-measurement
-                          mode="supervised", algo={"epochs": 1, "minibatches": 1})
+                          mode="supervised",
+                          # the whole-system phases train with the method's defaults (what a run costs);
+                          # the shield/actor phases have no learner
+                          algo={} if learner_defaults else {"epochs": 1, "minibatches": 1})
         if connect:
             cfg.transport.connect, cfg.transport.mode = list(connect), "client"
         cfg.actor.exit_on_unhealthy = True
@@ -371,6 +381,31 @@ class SystemBench:
                                           "params": params, "settings": {"kappa": 1.0, "tau": 1.0}},
                                run_id=run_id, sender="learner/0", seq=0))
 
+    def _router_rate(self, connect: list[str], run_id: str, n: int = 20_000, size: int = 300) -> dict:
+        """Messages/s from one client through the router to another."""
+        key = f"{keys.run_root(run_id)}/bench/flood"
+        got, done = [0], threading.Event()
+
+        def on_msg(_k, _payload):
+            got[0] += 1
+            if got[0] == n:
+                done.set()
+
+        pub, sub = Bus.open(connect=connect, mode="client"), Bus.open(connect=connect, mode="client")
+        try:
+            sub.subscribe(key, on_msg)
+            time.sleep(0.5)   # the subscription reaches the router
+            payload = bytes(size)
+            t0 = time.perf_counter()
+            for _ in range(n):
+                pub.publish(key, payload)
+            done.wait(10.0)
+            dt = time.perf_counter() - t0
+        finally:
+            pub.close()
+            sub.close()
+        return {"msgs_per_s": got[0] / dt, "delivered": got[0] / n, "bytes": size, "sent": n}
+
     def _wait_shield(self, bus, run_id: str, alive) -> None:
         """Until the shield answers a trivial request (its queryable is declared)."""
         body = {"a_prop": np.zeros((1, JOINT_ACT_DIM)), "C": np.zeros((1, 1, JOINT_ACT_DIM)), "c": np.zeros((1, 1)),
@@ -405,6 +440,11 @@ class SystemBench:
             rtt = self._rtt(bus, cfg.run_id, batches)
             learner = self._learner(cfg, bus)
             params = self._broadcast(bus, learner, cfg.run_id, local=False)
+            # small (heartbeat-sized) and shield-request-sized messages
+            near_k = min(batches, key=lambda B: abs(B - self.cfg.envs_per_actor))   # an actor's request size
+            req_bytes = len(wire.encode("shield_req", batches[near_k], run_id=cfg.run_id, sender="a", seq=0))
+            router = {"small": self._router_rate(connect, cfg.run_id),
+                      "shield_request": self._router_rate(connect, cfg.run_id, n=2_000, size=req_bytes)}
             self.check()
             meter = StepMeter(cfg.run_id)
             bus.subscribe(keys.status_all(cfg.run_id), meter.on_status)
@@ -451,6 +491,7 @@ class SystemBench:
                 "param_broadcast_ms": {"p50": params["p50"], "p99": params["p99"],
                                        "inprocess_p50": params_in["p50"], "inprocess_p99": params_in["p99"],
                                        "bytes": self._params_bytes(learner, cfg.run_id), "broadcasts": params["n"]},
+                "router_msgs_per_s": router,
                 "actor_steps_per_s": rates,
                 "ratio_vs_local_qp": rates["shield_service"] / rates["local_qp"],
                 "pipelining_gain": rates["shield_service"] / rates["shield_service_sync"]}
@@ -462,7 +503,7 @@ class SystemBench:
         counts = sorted(set(self.cfg.actor_counts))
         port = free_tcp_port()
         connect = [f"tcp/127.0.0.1:{port}"]
-        cfg, path = self.train_config(counts[-1], connect, "sys", method=method)
+        cfg, path = self.train_config(counts[-1], connect, "sys", method=method, learner_defaults=True)
         run = Path(cfg.run_dir)
         multi, learner_busy, restarts, have = {}, {}, {}, 0
         self.supervise([router_spec(port), *service_specs(path, roles=("shield", "learner"))], run, restart_budget=5)
@@ -496,7 +537,7 @@ class SystemBench:
         """Steps/s (and the learner's update share) with the services as
         threads; a failed learner thread is reported (it cannot be
         restarted), a failed actor or shield aborts."""
-        cfg, _ = self.train_config(counts[-1], None, "sys-in", method=method)
+        cfg, _ = self.train_config(counts[-1], None, "sys-in", method=method, learner_defaults=True)
         bus = Bus.open(inprocess=True)
         group = ServiceThreads(threading.Event())
 
@@ -548,14 +589,19 @@ class SystemBench:
                     feeder = _Repeater(self._learner(cfg, bus).publish_params, 0.5)
                     steps = meter.measure(n, self.cfg.warmup_s, self.cfg.measure_s, self.cfg.start_timeout_s,
                                           self.check)
-                    qps = {key.split("/")[1]: v for key, v in meter.window_rates.items() if key.startswith("shield/")}
+                    rates = meter.window_rates
+                    qps = {key.split("/")[1]: v for key, v in rates.items() if key.endswith("/rows")}
+                    busy = {key.split("/")[1]: v for key, v in rates.items() if key.endswith("/busy_s")}
                 finally:
                     if feeder is not None:
                         feeder.stop()
                     bus.close()
                     self.stop_all()
-                out.setdefault(str(k), {})[str(n)] = {"actor_env_steps_per_s": steps,
-                                                      "qps_served": sum(qps.values()), "qps_per_shard": qps}
+                out.setdefault(str(k), {})[str(n)] = {
+                    "actor_env_steps_per_s": steps, "qps_served": sum(qps.values()), "qps_per_shard": qps,
+                    # seconds busy per second; QPs/s at 100% busy = a shard core's capacity at this batch
+                    "shield_busy_share": busy,
+                    "qps_per_busy_shard_s": {s_: qps[s_] / busy[s_] for s_ in qps if busy.get(s_)}}
         return out
 
     # ------------------------------------------------------------- all

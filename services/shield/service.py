@@ -42,13 +42,14 @@ class ShieldService(Service):
         self.n_rows = 0
         self.n_dropped = 0   # queries answered "overloaded" because the queue was full
         self.rows_rate = RateMeter()
+        self.busy_s = 0.0   # decoding, solving and replying (not waiting): capacity = rows / busy_s
         self._queue: queue.Queue[Request] | None = None
 
     def status_fields(self) -> dict:
         return {"shield_p99_s": self.solve_window.quantile(0.99),
                 "extra": {"requests": float(self.n_requests), "rows": float(self.n_rows),
                           "dropped": float(self.n_dropped),
-                          "rows_per_s": self.rows_rate.rate(),
+                          "rows_per_s": self.rows_rate.rate(), "busy_s_total": self.busy_s,
                           "queue_depth": float(self._queue.qsize() if self._queue else 0)}}
 
     # ------------------------------------------------------------- loop
@@ -110,6 +111,13 @@ class ShieldService(Service):
     def _admit(self, req: Request, good: list) -> int:
         """Decode one request into ``good``; a bad one is answered with
         reply_err at once. Returns its number of QP rows."""
+        t0 = time.perf_counter()
+        try:
+            return self._decode_request(req, good)
+        finally:
+            self.busy_s += time.perf_counter() - t0
+
+    def _decode_request(self, req: Request, good: list) -> int:
         self.n_requests += 1
         self.m.shield_requests.labels(**self.labels).inc()
         msg = self.decode(req.payload, "shield_req")
@@ -122,6 +130,7 @@ class ShieldService(Service):
     def handle(self, batch: list[Request], good: list[tuple[Request, dict]]) -> None:
         """Solve the admitted requests in groups of equal M and reply; finishes
         every request of the batch, whatever happens."""
+        t0 = time.perf_counter()
         try:
             groups: dict[int, list[tuple[Request, dict]]] = {}
             for item in good:
@@ -131,6 +140,7 @@ class ShieldService(Service):
         finally:
             for req in batch:
                 req.finish()  # idempotent; no query is ever left open
+            self.busy_s += time.perf_counter() - t0
 
     def _solve_group(self, items: list[tuple[Request, dict]]) -> None:
         a_prop = np.concatenate([b["a_prop"] for _, b in items])
