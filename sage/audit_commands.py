@@ -13,7 +13,7 @@ from common.audit.bundle import export_bundle
 from common.audit.config import AuditConfig
 from common.audit.figures import colortrace, draw_trace
 from common.audit.leaf_stats import audit_markdown, leaf_audit
-from common.audit.params import BadPolicyParams, feature_names, load_params_file, split_carriers
+from common.audit.params import BadPolicyParams, feature_names, feature_units_of, load_params_file, split_carriers
 from common.audit.recording import Recording
 from common.checkpoint import list_checkpoints
 from common.rundir import RunDir
@@ -145,7 +145,8 @@ def _tree(args: argparse.Namespace) -> int:
                 if isinstance(exc, ValueError) and str(args.eval_log) in str(exc):
                     raise
                 raise load_error(args.eval_log, "recording (.npz)", exc) from exc
-    desc = tree_view.describe_tree(tree, feature_names(tree.obs_dim), AuditConfig(top_terms=args.top_terms), visits)
+    names = feature_names(tree.obs_dim)
+    desc = tree_view.describe_tree(tree, names, AuditConfig(top_terms=args.top_terms), visits, feature_units_of(names))
     title = f"carrier {args.carrier} tree ({Path(args.policy).name})"
     if args.format == "png":
         out = args.out or f"tree_carrier{args.carrier}.png"

@@ -28,7 +28,7 @@ def _one_node_tree():
 def test_describe_hand_built_tree():
     (tree,) = split_carriers(_one_node_tree())
     desc = describe_tree(tree, ["lookahead_dx", "wall_dist"], AuditConfig(top_terms=3), visits=np.array([3, 1]))
-    assert desc["nodes"][0]["predicate"] == "1.00·lookahead_dx + (1 more, |w|≤0.00) > 0.50"
+    assert desc["nodes"][0]["predicate"] == "1.00·lookahead_dx > 0.50"   # a zero weight is no term
     assert desc["nodes"][0]["left"] == 1 and desc["nodes"][0]["right"] == 2
     right = desc["leaves"][1]
     expect = [np.tanh(1.0), 0.5 * np.tanh(-1.0), 0.1 + 0.2 * np.tanh(0.5)]

@@ -65,6 +65,10 @@ class AlgoConfig:
     # trees
     tree_depth: int = 4
     init_log_std: float = -0.5
+    # sparse trees (common/policy/tree.py TreeConfig): at most split_k features per split,
+    # leaf_k per leaf gain row; 0 = dense (docs/results_sparse_trees.md)
+    split_k: int = 0
+    leaf_k: int = 0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -85,6 +89,8 @@ class AlgoConfig:
             raise ValueError(f"AlgoConfig.talo_step must be 'adam' or 'direct' (got {self.talo_step!r})")
         if self.happo_order not in ("update", "minibatch"):
             raise ValueError(f"AlgoConfig.happo_order must be 'update' or 'minibatch' (got {self.happo_order!r})")
+        if int(self.split_k) < 0 or int(self.leaf_k) < 0:
+            raise ValueError(f"AlgoConfig.split_k and leaf_k must be >= 0, 0 = dense (got {self.split_k}, {self.leaf_k})")
         if int(self.diag_qp_samples) < 0:
             raise ValueError(f"AlgoConfig.diag_qp_samples must be >= 0 (got {self.diag_qp_samples})")
         if self.talo_sigma < 0 or self.talo_eps < 0 or self.ent_coef < 0:

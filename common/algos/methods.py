@@ -101,7 +101,8 @@ class Method:
             torch.manual_seed(cfg.seed)
             self.policy = TeamPolicy(
                 n_agents, obs_dim,
-                config=TreeConfig(depth=cfg.tree_depth, init_log_std=cfg.init_log_std),
+                config=TreeConfig(depth=cfg.tree_depth, init_log_std=cfg.init_log_std,
+                                  split_k=cfg.split_k, leaf_k=cfg.leaf_k),
             )
             self.critic = TeamCritic(
                 n_agents, obs_dim, state_dim if cfg.critic_uses_state else 0,

@@ -6,9 +6,9 @@ from collections import Counter
 import numpy as np
 
 from common.audit.config import AuditConfig
-from common.audit.params import CarrierTree, feature_names, split_carriers
+from common.audit.params import CarrierTree, feature_names, feature_units_of, split_carriers
 from common.audit.recording import Recording
-from common.audit.tree_view import _cmd, _num, format_linear
+from common.audit.tree_view import _cmd, _num, format_predicate
 
 ROUTE_COLORS = ("#1e9e4a", "#8e3fb0")  # green and purple routes, as in Fig. tree
 
@@ -67,6 +67,7 @@ def draw_trace(rec: Recording, path: str, carrier: int = 0, steps: list[int] | N
         raise ValueError(f"carrier {carrier} out of range 0..{len(trees) - 1}")
     tree = trees[carrier]
     names = feature_names(tree.obs_dim, rec.meta.get("feature_names"))
+    units = feature_units_of(names)
     steps = representative_steps(rec, carrier) if steps is None else list(steps)
     w = tree.unit_W()
     routes = []
@@ -118,13 +119,20 @@ def draw_trace(rec: Recording, path: str, carrier: int = 0, steps: list[int] | N
     for n in sorted(on_route):
         x, y = pos[n]
         if n < tree.n_internal:
-            lines = [f"N{n}: {format_linear(w[n], names, 2)} > {_num(tree.b[n])}"]
+            lines = [f"N{n}: {format_predicate(w[n], tree.b[n], names, units, 2)}"]
             ax.text(x, y, lines[0], fontsize=8, ha="center", va="center", zorder=3,
                     bbox=dict(boxstyle="round,pad=0.3", fc="#eef3fb", ec="#4a6fa5"))
             for k, (r, s) in enumerate(zip(routes, steps)):
                 if n in r:
                     val = float(w[n] @ rec.obs[s, carrier])
-                    ax.text(x, y - 0.32 - 0.22 * k, f"w·o = {_num(val)} → {'yes' if val > tree.b[n] else 'no'}",
+                    used = np.flatnonzero(np.abs(w[n]) >= 0.005)
+                    if units is not None and len(used) == 1:   # a crisp split: the quantity itself
+                        j = int(used[0])
+                        scale, unit = units[names[j]]
+                        seen = f"{names[j]} = {_num(float(rec.obs[s, carrier, j]) * scale)} {unit}".rstrip()
+                    else:
+                        seen = f"w·o = {_num(val)}"
+                    ax.text(x, y - 0.32 - 0.22 * k, f"{seen} → {'yes' if val > tree.b[n] else 'no'}",
                             fontsize=7, color=ROUTE_COLORS[k], ha="center", va="center", zorder=3)
         else:
             for k, (r, s) in enumerate(zip(routes, steps)):

@@ -15,6 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
+from common.env.config import EnvConfig
+from common.env.observations import OBS_FEATURE_NAMES, feature_units
+
 _CARRIER_KEY = re.compile(r"^carrier_(\d+)/(.+)$")
 
 
@@ -196,11 +199,16 @@ def bundle_json_to_params(doc: dict) -> dict[str, np.ndarray]:
 
 def feature_names(obs_dim: int, names: list[str] | None = None) -> list[str]:
     """The environment's observation feature names when they fit ``obs_dim``, else ``o[j]``."""
-    if names is None:
-        try:
-            from common.env.observations import OBS_FEATURE_NAMES as names  # type: ignore[no-redef]
-        except ImportError:
-            names = None
-    if names is not None and len(names) == obs_dim:
+    names = OBS_FEATURE_NAMES if names is None else names
+    if len(names) == obs_dim:
         return list(names)
     return [f"o[{j}]" for j in range(obs_dim)]
+
+
+def feature_units_of(names: list[str], env: EnvConfig | None = None) -> dict[str, tuple[float, str]] | None:
+    """(scale, unit) of each environment feature for readable predicates
+    (``common.env.observations.feature_units`` of ``env``, default EnvConfig);
+    None for names that are not the environment's."""
+    if list(names) != OBS_FEATURE_NAMES:
+        return None
+    return feature_units(env or EnvConfig())

@@ -30,7 +30,8 @@ def format_linear(weights: np.ndarray, names: list[str], top: int, continued: bo
     order = np.argsort(-np.abs(weights), kind="stable")
     # terms that would print as 0.00 are folded into the remainder too
     n_shown = max(1, min(top, int(np.sum(np.abs(weights) >= 0.005))))
-    shown, rest = order[:n_shown], order[n_shown:]
+    shown = order[:n_shown]
+    rest = np.array([j for j in order[n_shown:] if weights[j] != 0], dtype=np.int64)   # a sparse split's zeros are not terms
     parts = []
     for n, j in enumerate(shown):
         w = weights[j]
@@ -39,6 +40,28 @@ def format_linear(weights: np.ndarray, names: list[str], top: int, continued: bo
     if len(rest):
         parts.append(f"+ ({len(rest)} more, |w|≤{_num(float(np.max(np.abs(weights[rest]))))})")
     return " ".join(parts)
+
+
+def format_predicate(w: np.ndarray, b: float, names: list[str], units: dict | None, top: int) -> str:
+    """The split ``w.o > b`` (Eq. hard_gate) in physical, unit-carrying
+    features: feature j is quantity_j / scale_j, so the coefficient on the
+    quantity is w_j / scale_j. A one-feature split reads as a threshold on the
+    quantity itself (``goal_dx > 1.55 m``); a sparse one lists every term
+    (``0.16·goal_dx[m] − 0.29·wall_dist_front[m] > 0.31``); a dense one its
+    ``top`` largest terms and how many more. Without ``units``: the scaled features."""
+    w = np.asarray(w, dtype=np.float64)
+    if units is None:
+        return f"{format_linear(w, names, top)} > {_num(b)}"
+    scale = np.array([units[n][0] if n in units else 1.0 for n in names])
+    unit = [units[n][1] if n in units else "" for n in names]
+    coef = w / scale
+    used = np.flatnonzero(np.abs(w) >= 0.005)
+    if len(used) == 1:
+        j = int(used[0])
+        thr = b / coef[j]
+        return f"{names[j]} {'>' if coef[j] > 0 else '<'} {_num(thr)}{' ' + unit[j] if unit[j] else ''}"
+    labelled = [f"{n}[{u}]" if u else n for n, u in zip(names, unit)]
+    return f"{format_linear(coef, labelled, max(top, len(used)) if len(used) <= 8 else top)} > {_num(b)}"
 
 
 def leaf_path(tree: CarrierTree, leaf: int) -> list[tuple[int, bool]]:
@@ -53,8 +76,9 @@ def leaf_path(tree: CarrierTree, leaf: int) -> list[tuple[int, bool]]:
 
 
 def describe_tree(tree: CarrierTree, names: list[str], cfg: AuditConfig = AuditConfig(),
-                  visits: np.ndarray | None = None) -> dict:
-    """JSON-ready description: internal predicates, leaf commands, bounds and visits."""
+                  visits: np.ndarray | None = None, units: dict | None = None) -> dict:
+    """JSON-ready description: internal predicates (in physical units with
+    ``units``, ``common.env.observations.feature_units``), leaf commands, bounds and visits."""
     if len(names) != tree.obs_dim:
         raise ValueError(f"{len(names)} feature names for obs_dim {tree.obs_dim}")
     if visits is not None and len(visits) != tree.n_leaves:
@@ -65,7 +89,8 @@ def describe_tree(tree: CarrierTree, names: list[str], cfg: AuditConfig = AuditC
         nodes.append({
             "id": k,
             "depth": int(np.floor(np.log2(k + 1))),
-            "predicate": f"{format_linear(w[k], names, cfg.top_terms)} > {_num(tree.b[k])}",
+            "predicate": format_predicate(w[k], tree.b[k], names, units, cfg.top_terms),
+            "n_features": int(np.sum(w[k] != 0)),
             "left": 2 * k + 1, "right": 2 * k + 2,   # left: predicate false, right: true
             "w": w[k].tolist(), "b": float(tree.b[k]),
         })

@@ -39,6 +39,27 @@ RAY_MAX = 2.0
 _RAY_ANGLES = np.array([0.0, np.pi / 2, np.pi, -np.pi / 2])
 
 
+def feature_units(cfg: EnvConfig) -> dict[str, tuple[float, str]]:
+    """Per feature: ``(scale, unit)`` with feature = physical quantity / scale,
+    the quantity in the carrier's own frame (x forward, y left) -- what the
+    audit tools print tree predicates in (``goal_dx > 1.55 m``)."""
+    v, w = cfg.max_step_xy / cfg.control_dt, cfg.max_step_yaw / cfg.control_dt
+    la, ds = cfg.lookahead, cfg.drop_strain
+    out = {"vel_x": (v, "m/s"), "vel_y": (v, "m/s"), "vel_yaw": (w, "rad/s"),
+           "slot_dx": (la, "m"), "slot_dy": (la, "m"), "slot_dyaw": (1.0, "rad"),
+           "grasp_dx": (ds, "m"), "grasp_dy": (ds, "m"), "grasp_strain": (ds, "m"),
+           "payload_dx": (1.0, "m"), "payload_dy": (1.0, "m"), "payload_sin": (1.0, ""), "payload_cos": (1.0, ""),
+           "heading_err": (1.0, "rad"), "lookahead_dx": (la, "m"), "lookahead_dy": (la, "m"),
+           "goal_dx": (5.0, "m"), "goal_dy": (5.0, "m"), "goal_dyaw": (1.0, "rad"), "progress": (1.0, ""),
+           "partner1_dx": (2.0, "m"), "partner1_dy": (2.0, "m"), "partner1_strain": (ds, "m"),
+           "partner2_dx": (2.0, "m"), "partner2_dy": (2.0, "m"), "partner2_strain": (ds, "m"),
+           "wall_dist_front": (RAY_MAX, "m"), "wall_dist_left": (RAY_MAX, "m"), "wall_dist_back": (RAY_MAX, "m"),
+           "wall_dist_right": (RAY_MAX, "m"), "payload_clearance": (1.0, "m"), "payload_wall_dx": (1.0, "m"),
+           "payload_wall_dy": (1.0, "m"), "time_left": (1.0, "")}
+    assert list(out) == OBS_FEATURE_NAMES
+    return out
+
+
 def observation_noise_std(cfg: EnvConfig) -> np.ndarray:
     """Per-feature std [OBS_DIM] of the additive Gaussian observation noise (in feature units).
 

@@ -54,6 +54,12 @@ class TreeConfig:
     init_log_std: float = -0.5     # proposal spread in pre-tanh space (sigma ~ 0.61)
     action_center: float = 0.0     # c_a (action box [-1, 1])
     action_half_range: float = 1.0  # s_a
+    # Sparse oblique splits (ICCT-style readability): each split vector w_k has at
+    # most split_k non-zero features (0 = dense, all obs_dim), each leaf gain row K_l[a]
+    # at most leaf_k (0 = dense): the k largest |.| of the learner's dense weights,
+    # straight-through (common/policy/tree_torch.py), so which features are kept can change.
+    split_k: int = 0
+    leaf_k: int = 0
 
 
 class TreeOutput(NamedTuple):

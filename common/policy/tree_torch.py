@@ -23,8 +23,33 @@ from common.policy.tree import (
 )
 
 
+def top_k_mask(x: torch.Tensor, k: int) -> torch.Tensor:
+    """1 on the ``k`` largest |x| entries of each row (last axis), 0 elsewhere;
+    all ones when ``k`` is 0 (dense) or >= the row length."""
+    if k <= 0 or k >= x.shape[-1]:
+        return torch.ones_like(x)
+    idx = x.abs().topk(k, dim=-1).indices
+    return torch.zeros_like(x).scatter_(-1, idx, 1.0)
+
+
+def st_top_k(x: torch.Tensor, k: int) -> torch.Tensor:
+    """Forward: ``x`` with all but its k largest |x| per row zeroed (what actors
+    run); backward: the identity, so a dropped feature whose gradient keeps
+    pushing can grow past a kept one and take its place (as Eq. st_gate does
+    for the gates). Projecting the parameter itself would freeze a one-feature
+    split on its initial feature: the unit-norm gate gives the kept weight no
+    gradient and the dropped ones are zeroed after every step."""
+    if k <= 0 or k >= x.shape[-1]:
+        return x
+    mask = top_k_mask(x.detach(), k)
+    return x * mask + (x - x.detach()) * (1.0 - mask)
+
+
 class HardObliqueTree(nn.Module):
-    """One carrier's hard oblique tree; hard forward, straight-through backward."""
+    """One carrier's hard oblique tree; hard forward, straight-through backward.
+    With ``config.split_k``/``leaf_k`` the forward (and the exported arrays the
+    actors run) uses the k largest weights of each split vector / leaf gain row
+    (``st_top_k``); the parameters stay dense for the learner."""
 
     def __init__(self, obs_dim: int, act_dim: int = 3, depth: int | None = None, config: TreeConfig | None = None):
         super().__init__()
@@ -42,16 +67,27 @@ class HardObliqueTree(nn.Module):
         self.log_std = nn.Parameter(torch.full((act_dim,), float(cfg.init_log_std)))
         self.register_buffer("c_a", torch.full((act_dim,), float(cfg.action_center)))
         self.register_buffer("s_a", torch.full((act_dim,), float(cfg.action_half_range)))
+        if cfg.split_k < 0 or cfg.leaf_k < 0:
+            raise ValueError(f"tree: split_k and leaf_k must be >= 0 (0 = dense), got {cfg.split_k}, {cfg.leaf_k}")
+        self.split_k, self.leaf_k = int(cfg.split_k), int(cfg.leaf_k)
+
+    def split_W(self):
+        """The split vectors the tree routes with: k-sparse if split_k (straight-through)."""
+        return st_top_k(self.W, self.split_k)
+
+    def leaf_K(self):
+        """The leaf gains the tree acts with: k-sparse rows if leaf_k (straight-through)."""
+        return st_top_k(self.K, self.leaf_k)
 
     def gate_margins(self, obs):
         """w_k.o - b_k for every internal node, float64 [B, n_internal] (see dtype policy)."""
-        W = self.W.double()
-        w = W / torch.linalg.vector_norm(W, dim=1, keepdim=True)
+        W = self.split_W().double()
+        w = W / torch.linalg.vector_norm(W, dim=1, keepdim=True)   # ||w|| = 1 on the kept features
         return obs.double() @ w.T - self.b.double()
 
     def leaf_actions(self, obs):
         """c_a + s_a tanh(K_l o + beta_l) for every leaf, [B, n_leaves, act_dim] float64."""
-        u = torch.einsum("lao,bo->bla", self.K.double(), obs.double()) + self.beta.double()
+        u = torch.einsum("lao,bo->bla", self.leaf_K().double(), obs.double()) + self.beta.double()
         return self.c_a.double() + self.s_a.double() * torch.tanh(u)
 
     def route(self, margins):
@@ -89,7 +125,10 @@ class HardObliqueTree(nn.Module):
         return TreeOutput(action, leaf, nodes, sides)
 
     def export_arrays(self) -> dict[str, np.ndarray]:
-        return {name: getattr(self, name).detach().cpu().numpy().astype(np.float32) for name in PARAM_NAMES}
+        """The arrays actors run: W and K as the forward uses them (k-sparse where configured)."""
+        value = {"W": self.split_W, "K": self.leaf_K}
+        return {name: (value[name]() if name in value else getattr(self, name)).detach().cpu().numpy()
+                .astype(np.float32) for name in PARAM_NAMES}
 
 class TeamPolicy(nn.Module):
     """N independent hard trees (no parameter sharing); stacked action [B, N*act_dim]."""
