@@ -4,7 +4,8 @@ Deployment keeps only the hard trees' deterministic actions and the exact
 joint CBF-QP (Sec. III-D: SAIL, exploration, the critic and TALO are
 training-only), so this loads the tree parameters of a run's newest
 checkpoint and runs ``common.evaluation.deployment.evaluate_policy`` on seeded episodes
-disjoint from training. Output keys follow the report's ``EVAL_KEYS``.
+disjoint from training. Output keys follow the report's ``EVAL_KEYS``. ``--video``
+renders one of the scored episodes (``common.evaluation.video``).
 """
 from __future__ import annotations
 
@@ -16,9 +17,11 @@ from pathlib import Path
 from common.algos.registry import method_spec
 from common.audit.recording import Recorder
 from common.env.scenarios import SCENARIOS
+from common.evaluation import video as video_lib
 from common.evaluation.deployment import evaluate_policy
+from common.evaluation.video import EXTRA_HINT, SUFFIXES, VIEWS, VideoConfig, VideoRecorder
 from common.status import Progress
-from sage.errors import UsageError, nonneg_int, positive_int, user_input
+from sage.errors import UsageError, nonneg_int, output_file, positive_float, positive_int, user_input
 from sage.runs import load_run
 from services.config import FINAL_EVAL_SEED
 
@@ -75,9 +78,50 @@ def differences_notice(diff: dict) -> str | None:
     return "sage eval: " + "; ".join(parts) if parts else None
 
 
+class _Recorders:
+    """Several deployment recorders fed by one loop (``--record`` and ``--video`` together)."""
+
+    def __init__(self, *recorders):
+        self.recorders = [r for r in recorders if r is not None]
+
+    def on_step(self, *step) -> None:
+        for r in self.recorders:
+            r.on_step(*step)
+
+    def on_episode(self, k: int, metrics: dict) -> None:
+        for r in self.recorders:
+            r.on_episode(k, metrics)
+
+
+def video_config(args) -> VideoConfig:
+    """The ``--video*`` flags checked before any work: file type, the video extra, the view
+    (default: camera where OpenGL works, else top-down with a one-line note)."""
+    suffix = Path(args.video).suffix.lower()
+    if suffix not in SUFFIXES:
+        raise UsageError(f"--video {args.video}: videos are {' or '.join(SUFFIXES)} files")
+    missing = video_lib.missing_dependency(suffix)
+    if missing:
+        raise UsageError(f"--video needs the video extra ({missing} is missing): {EXTRA_HINT}")
+    if args.video_episode >= args.episodes:
+        raise UsageError(f"--video-episode {args.video_episode}: only {args.episodes} episodes are evaluated")
+    view = args.video_view
+    why = video_lib.gl_unavailable() if view != "topdown" else None
+    if view == "camera" and why:
+        raise UsageError(f"--video-view camera needs OpenGL, unavailable here ({why}); use --video-view topdown")
+    with user_input("--video"):
+        cfg = VideoConfig(view=view or ("topdown" if why else "camera"), episode=args.video_episode,
+                          width=args.video_width, every=args.video_every, fps=args.video_fps)
+    output_file(args.video, "--video")
+    if view is None and why:   # the note only once every flag passed: a usage error stays one line
+        print(f"sage eval: no OpenGL for the camera view ({why}); rendering the top-down view",
+              file=sys.stderr, flush=True)
+    return cfg
+
+
 def run_eval_command(args) -> int:
     if args.record and Path(args.record).suffix != ".npz":
         raise UsageError(f"--record {args.record}: recordings are .npz files")
+    video_cfg = video_config(args) if args.video else None
     with user_input(args.checkpoint):
         cfg, params, version = load_run(args.checkpoint)
     trained_env = cfg.env_config()
@@ -96,6 +140,9 @@ def run_eval_command(args) -> int:
     if notice:
         print(notice, file=sys.stderr, flush=True)
     recorder = Recorder() if args.record else None   # records the very episodes it scores
+    video = None if video_cfg is None else VideoRecorder(
+        args.video, video_cfg, title=f"{cfg.method} on {env_cfg.scenario}, version {version}, "
+                                     f"episode {video_cfg.episode} (seed {args.seed})")
     bar = Progress(sys.stderr, args.episodes, "sage eval", unit="episodes")
 
     def on_step(finished: int, step: int, limit: int) -> None:
@@ -104,16 +151,21 @@ def run_eval_command(args) -> int:
         bar.update(finished, note=f"step {step}/{limit}", eta_s=elapsed / step * (limit - step))
 
     try:
-        raw = evaluate_policy(params, env_cfg, args.episodes, seed=args.seed, shielded=shielded, recorder=recorder,
-                              on_step=on_step)
+        raw = evaluate_policy(params, env_cfg, args.episodes, seed=args.seed, shielded=shielded,
+                              recorder=_Recorders(recorder, video) if video else recorder, on_step=on_step)
     finally:
         bar.close()
+        written = video.close() if video else None
     rec = eval_record(raw)
     rec.update(method=cfg.method, scenario=cfg.scenario, version=version, human_slot=env_cfg.human_slot,
                differs_from_training=diff)
     if recorder is not None:
         recording = recorder.recording(params, env_cfg, args.seed, shielded)
         rec["recording"] = str(recording.save(args.record))
+    if written is not None:
+        rec["video"] = written["path"]
+        print(f"sage eval: video {written['path']} ({written['frames']} frames, {written['view']} view)",
+              file=sys.stderr)
     if args.json:
         print(json.dumps(rec, indent=2, default=float))
     else:
@@ -142,5 +194,16 @@ def register(commands, bench) -> None:
                         "exogenous: noisy, delayed, never corrected by the QP); 'none' = three "
                         "robots; default: the run's own setting")
     p.add_argument("--record", default=None, help="also record decision traces to this file")
+    p.add_argument("--video", default=None, metavar="FILE.mp4|FILE.gif",
+                   help="also render one evaluated episode: proposed vs executed commands, leaves, outcome "
+                        f"(needs the video extra: {EXTRA_HINT})")
+    p.add_argument("--video-view", default=None, choices=VIEWS,
+                   help="camera: MuJoCo offscreen render tracking the payload (OpenGL; EGL when headless); "
+                        "topdown: 2-D drawing, no GL; default: camera where OpenGL works, else topdown")
+    p.add_argument("--video-episode", type=nonneg_int, default=0, help="which evaluated episode (default: the first)")
+    p.add_argument("--video-every", type=positive_int, default=1, help="one frame every N steps (smaller files)")
+    p.add_argument("--video-width", type=positive_int, default=480, help="frame width in pixels, 160..640")
+    p.add_argument("--video-fps", type=positive_float, default=None,
+                   help="frames per second (default: real time, 1 / (control_dt * every))")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=run_eval_command)
