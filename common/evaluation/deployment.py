@@ -21,6 +21,7 @@ import numpy as np
 from common.env.batch_env import BatchEnv
 from common.env.metrics import aggregate
 from common.policy.rollout import propose
+from common.policy.tree import ValidatedParams
 from common.safety_rows import VIOLATION_TOL, SafetyRows
 from common.shield.qp import STATUS_INFEASIBLE, shield_actions
 
@@ -74,6 +75,7 @@ def evaluate_policy(params: dict, env_cfg, episodes: int, seed: int, shielded: b
     after every step (progress displays)."""
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
+    params = ValidatedParams(params)   # checked once here, not in every step's forward
     env = BatchEnv(env_cfg, episodes, seed=seed)
     out = env.reset()
     first: list[dict | None] = [None] * episodes

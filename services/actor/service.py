@@ -32,7 +32,7 @@ from common.algos.registry import method_spec
 from common.env.batch_env import BatchEnv
 from common.metrics_prom import Window
 from common.policy.rollout import propose as default_propose
-from common.policy.tree import InvalidParams, validate_params
+from common.policy.tree import InvalidParams, ValidatedParams
 from common.safety_rows import SafetyRows
 from common.shield.verify import verify_answer
 from common.spec import CARRIER_ACT_DIM, N_CARRIERS
@@ -111,9 +111,10 @@ class ActorService(Service):
         if body["method"] != self.cfg.method:
             return f"method {body['method']!r} is not this run's {self.cfg.method!r}"
         try:
-            spec = validate_params(body["params"])
+            body["params"] = ValidatedParams(body["params"])   # checked once, run every step
         except InvalidParams as exc:
             return str(exc)
+        spec = body["params"].spec
         want = (N_CARRIERS, self.obs_dim, CARRIER_ACT_DIM)
         if (spec.n_agents, spec.obs_dim, spec.act_dim) != want and self.obs_dim is not None:
             return f"trees for (carriers, obs_dim, act_dim) = {spec[:3]}, this env needs {want}"
