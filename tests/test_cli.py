@@ -7,10 +7,10 @@ def test_every_command_module_registers():
         assert callable(module.register), module.__name__
     parser = build_parser()
     commands = parser._subparsers._group_actions[0].choices
-    assert {"train", "up", "eval", "suite", "report", "env", "tree", "trace", "audit", "export-bundle",
+    assert {"train", "up", "eval", "suite", "report", "env", "tree", "trace", "audit", "export-bundle", "watch",
             "bench"} <= set(commands)
     bench = commands["bench"]._subparsers._group_actions[0].choices
-    assert set(bench) == {"qp", "env", "scripted", "learner", "system"}
+    assert set(bench) == {"qp", "env", "scripted", "learner", "system", "scaling"}
 
 
 def test_help_lists_core_commands(capsys):
