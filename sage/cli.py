@@ -20,7 +20,7 @@ import argparse
 import os
 import sys
 
-from sage import audit_commands, env_commands, evaluate, report, suite, train, watch
+from sage import audit_commands, compare, env_commands, evaluate, report, suite, train, watch
 from sage.errors import UsageError
 from sage.bench import env as bench_env
 from sage.bench import learner as bench_learner
@@ -34,6 +34,7 @@ COMMAND_MODULES = [
     evaluate,         # sage eval
     suite,            # sage suite
     report,           # sage report
+    compare,          # sage compare
     env_commands,     # sage env render
     audit_commands,   # sage tree, sage trace, sage audit, sage export-bundle
     watch,            # sage watch

@@ -7,7 +7,7 @@ def test_every_command_module_registers():
         assert callable(module.register), module.__name__
     parser = build_parser()
     commands = parser._subparsers._group_actions[0].choices
-    assert {"train", "up", "eval", "suite", "report", "env", "tree", "trace", "audit", "export-bundle", "watch",
+    assert {"train", "up", "eval", "suite", "report", "env", "tree", "trace", "audit", "export-bundle", "watch", "compare",
             "bench"} <= set(commands)
     bench = commands["bench"]._subparsers._group_actions[0].choices
     assert set(bench) == {"qp", "env", "scripted", "learner", "system", "scaling"}

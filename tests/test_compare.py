@@ -1,0 +1,42 @@
+"""sage compare: variants of one setting from suite result dirs, with intervals."""
+import json
+
+import pytest
+
+from sage.cli import main
+from sage.compare import variant_row, wilson
+
+
+def write_suite(folder, srs, override):
+    folder.mkdir(parents=True)
+    for (scenario, seed), sr in srs.items():
+        ev = {"success_rate": sr, "episodes": 100, "margin_col_per_1k": 1.0, "col_per_1k": 0.0,
+              "correction": 0.1, "intervention_rate": 0.2}
+        (folder / f"sage__{scenario}__seed{seed}.json").write_text(json.dumps(
+            {"method": "sage", "scenario": scenario, "seed": seed, "eval": ev, "train_curve": [],
+             "budget": {"overrides": [override]}}))
+    (folder / "suite_config.json").write_text("{}")
+
+
+def test_wilson_matches_the_textbook_interval():
+    lo, hi = wilson(0, 10)
+    assert lo == pytest.approx(0.0, abs=1e-12) and hi == pytest.approx(0.2775, abs=1e-4)
+    lo, hi = wilson(50, 100)
+    assert lo == pytest.approx(0.4038, abs=1e-4) and hi == pytest.approx(0.5962, abs=1e-4)
+
+
+def test_variant_rows_pool_runs_and_stratify_by_scenario(tmp_path, capsys):
+    write_suite(tmp_path / "a", {("g", 0): 1.0, ("g", 1): 0.8, ("c", 0): 0.6, ("c", 1): 0.6}, "algo.split_k=0")
+    write_suite(tmp_path / "b", {("g", 0): 1.0, ("g", 1): 1.0, ("c", 0): 1.0, ("c", 1): 1.0}, "algo.split_k=1")
+    row = variant_row("a", tmp_path / "a")
+    assert row["runs"] == 4 and row["success_rate"] == pytest.approx(0.75) and row["episodes"] == 400
+    assert row["per_scenario_sr"] == {"c": pytest.approx(0.6), "g": pytest.approx(0.9)}
+    lo, hi = row["success_rate_ci"]
+    assert 0.6 <= lo <= 0.75 <= hi <= 0.9 + 1e-9     # mean of per-scenario means, resampled within each
+    assert row["overrides"] == ["algo.split_k=0"]
+    assert main(["compare", f"dense={tmp_path / 'a'}", f"k1={tmp_path / 'b'}"]) == 0
+    text = capsys.readouterr().out
+    assert "| dense | 4 |" in text and "| k1 | 4 |" in text and "SR c" in text
+    with pytest.raises(SystemExit) as e:
+        main(["compare", f"x={tmp_path / 'missing'}"])
+    assert e.value.code == 2
