@@ -17,7 +17,11 @@ from common.audit.params import feature_names, feature_units_of, split_carriers
 from common.audit.tree_view import describe_tree
 from common.env.observations import OBS_DIM
 from common.policy.tree import TreeConfig, team_forward_np
-from common.policy.tree_torch import TeamPolicy, top_k_mask
+from common.policy.tree_torch import (
+    TeamPolicy,
+    policy_params_from_checkpoint,
+    top_k_mask,
+)
 from services.config import TrainConfig
 
 
@@ -71,6 +75,19 @@ def test_numpy_twin_and_bundle_agree_with_the_sparse_torch_tree(tmp_path):
         np.testing.assert_allclose(action, a_np[:, 3 * i:3 * i + 3], atol=1e-9)
 
 
+def test_a_checkpoint_of_a_sparse_run_exports_the_sparse_trees():
+    # the checkpoint holds the dense straight-through weights; sage eval, export-bundle
+    # and tree show must still get the k-sparse trees the run's actors ran
+    cfg = TrainConfig(run_id="t", algo={"split_k": 2, "leaf_k": 3})
+    m = make_method("sage", cfg.algo, OBS_DIM, 3 * OBS_DIM)
+    ckpt = {"method": m.state_dict(), "config": cfg.to_json()}
+    live, restored = m.policy_params(), policy_params_from_checkpoint(ckpt)
+    assert live.keys() == restored.keys()
+    for key in live:
+        np.testing.assert_array_equal(restored[key], live[key])
+    assert ((restored["carrier_0/W"] != 0).sum(1) <= 2).all()
+
+
 def test_sparse_predicates_print_every_term_with_units():
     torch.manual_seed(3)
     params = TeamPolicy(3, OBS_DIM, config=TreeConfig(depth=2, split_k=1)).export_params()
@@ -89,6 +106,24 @@ def test_sparse_predicates_print_every_term_with_units():
         assert any(f"{n}[" in node["predicate"] for n in used)   # unit-carrying terms
     # the units are the features' real scales: goal_dx is (payload -> goal x) / 5 m
     assert units["goal_dx"] == (5.0, "m") and units["vel_yaw"][1] == "rad/s"
+
+
+def test_a_split_in_one_unit_reads_as_a_unit_normal_and_a_distance():
+    # w.o > b on goal_dx = q1 / 5 m and wall_dist_front = q2 / 2 m is
+    # (w1/5) q1 + (w2/2) q2 > b; rescaled to a unit normal in metres the threshold is in m
+    names = feature_names(OBS_DIM)
+    units = feature_units_of(names)
+    params = TeamPolicy(3, OBS_DIM, config=TreeConfig(depth=1, split_k=2, leaf_k=1)).export_params()
+    W = np.zeros((1, OBS_DIM), np.float32)
+    W[0, names.index("goal_dx")], W[0, names.index("wall_dist_front")] = 0.6, -0.8
+    params["carrier_0/W"], params["carrier_0/b"] = W, np.array([0.1], np.float32)
+    desc = describe_tree(split_carriers(params)[0], names, units=units)
+    coef = np.array([0.6 / 5.0, -0.8 / 2.0])
+    n = np.linalg.norm(coef)
+    assert desc["nodes"][0]["predicate"] == (f"−{-coef[1] / n:.2f}·wall_dist_front[m] + {coef[0] / n:.2f}·goal_dx[m]"
+                                             f" > {0.1 / n:.2f} m")   # largest |term| first
+    for gain in desc["leaves"][0]["gains"].values():   # a 1-sparse leaf row: one unit-carrying term, all shown
+        assert "more" not in gain and gain.count("·") <= 1
 
 
 @pytest.mark.parametrize("bad", [{"split_k": -1}, {"leaf_k": -2}])

@@ -22,7 +22,7 @@ import numpy as np
 from common.audit import bundle_runtime
 from common.audit.config import AuditConfig
 from common.audit.params import feature_names as resolve_names
-from common.audit.params import split_carriers
+from common.audit.params import feature_units_of, split_carriers
 from common.audit.tree_view import describe_tree
 
 README = """# SAGE deployment bundle
@@ -130,7 +130,7 @@ def bundle_document(params: dict, names: list[str] | None = None, cfg: AuditConf
            "leaf_command": "c_a + s_a * tanh(K o + beta)",
            "meta": meta or {}, "trees": []}
     for i, tree in enumerate(trees):
-        desc = describe_tree(tree, names, cfg)
+        desc = describe_tree(tree, names, cfg, units=feature_units_of(names))   # as `sage tree show` prints them
         doc["trees"].append({
             "carrier": i, "depth": tree.depth, "c_a": tree.c_a.tolist(), "s_a": tree.s_a.tolist(),
             "nodes": [{"id": n["id"], "predicate": n["predicate"], "left": n["left"], "right": n["right"],

@@ -59,7 +59,9 @@ def representative_steps(rec: Recording, carrier: int, candidates: int = 6) -> l
 
 def draw_trace(rec: Recording, path: str, carrier: int = 0, steps: list[int] | None = None,
                cfg: AuditConfig = AuditConfig()) -> list[int]:
-    """Fig. tree: two complete root-to-leaf routes of one carrier's tree, siblings collapsed."""
+    """Fig. tree: two complete root-to-leaf routes of one carrier's tree, siblings
+    collapsed; each node's predicate and the value the carrier saw, each leaf's
+    nominal command a_ST and what the exact CBF-QP (Eq. qpshield) executed instead."""
     if not rec.params:
         raise ValueError("the recording holds no policy params; cannot draw predicates")
     trees = split_carriers(rec.params)
@@ -141,8 +143,13 @@ def draw_trace(rec: Recording, path: str, carrier: int = 0, steps: list[int] | N
                 a = rec.a_st[s, 3 * carrier:3 * carrier + 3]
                 e = rec.a_exec[s, 3 * carrier:3 * carrier + 3]
                 txt = f"L{n - tree.n_internal}: [Δx, Δy, Δψ] = {_cmd(a)}"
-                if not np.allclose(a, e, atol=5e-3):
-                    txt += f"\nexecuted (CBF-QP) {_cmd(e)}"
+                # the exact QP's correction of this command (Eq. qpshield), shown even when nil
+                n_active = int(np.sum(rec.active[s]))
+                rows = f"{n_active} row{'' if n_active == 1 else 's'} active"
+                if np.allclose(a, e, atol=5e-3):
+                    txt += f"\nCBF-QP: executed as proposed ({rows})"
+                else:
+                    txt += f"\nCBF-QP executed {_cmd(e)}, correction ‖Δa‖ = {_num(float(np.linalg.norm(e - a)))} ({rows})"
                 txt += f"\nepisode {int(rec.episode[s])}, t = {int(rec.t[s])}, progress {rec.progress[s]:.2f}"
                 same_leaf = len(routes) > 1 and routes[0][-1] == routes[1][-1]
                 ax.text(x - 0.05, y + (0.45 - 0.9 * k) * same_leaf, txt,
@@ -151,8 +158,8 @@ def draw_trace(rec: Recording, path: str, carrier: int = 0, steps: list[int] | N
     ax.set_xlim(-0.9, tree.depth + 1.6)
     ax.set_ylim(-slot[0] - 0.3, 0.8)
     ax.axis("off")
-    ax.set_title(f"Carrier {carrier}: two recorded decisions (node predicate w·o > b; leaf command is the "
-                 "nominal tree action)", fontsize=10)
+    ax.set_title(f"Carrier {carrier}: two recorded decisions (predicates in the carrier's body frame; leaf "
+                 "command is the nominal tree action, then the exact CBF-QP's correction)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=140)
     plt.close(fig)

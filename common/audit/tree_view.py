@@ -42,26 +42,56 @@ def format_linear(weights: np.ndarray, names: list[str], top: int, continued: bo
     return " ".join(parts)
 
 
+# A vector with at most this many non-zero weights (a split_k / leaf_k sparse
+# tree) prints every term; a denser one its top_terms largest and a count.
+FULL_TERMS = 8
+
+
+def _in_units(w: np.ndarray, names: list[str], units: dict) -> tuple[np.ndarray, list[str], list[str]]:
+    """Feature j is quantity_j / scale_j, so ``w.o = sum_j (w_j / scale_j) q_j``:
+    the coefficients on the quantities, the names labelled ``name[unit]`` and the units."""
+    scale = np.array([units[n][0] if n in units else 1.0 for n in names])
+    unit = [units[n][1] if n in units else "" for n in names]
+    return np.asarray(w, np.float64) / scale, [f"{n}[{u}]" if u else n for n, u in zip(names, unit)], unit
+
+
+def _terms_shown(w: np.ndarray, top: int) -> int:
+    used = int(np.sum(np.abs(w) >= 0.005))
+    return max(top, used) if used <= FULL_TERMS else top
+
+
 def format_predicate(w: np.ndarray, b: float, names: list[str], units: dict | None, top: int) -> str:
     """The split ``w.o > b`` (Eq. hard_gate) in physical, unit-carrying
-    features: feature j is quantity_j / scale_j, so the coefficient on the
-    quantity is w_j / scale_j. A one-feature split reads as a threshold on the
-    quantity itself (``goal_dx > 1.55 m``); a sparse one lists every term
-    (``0.16·goal_dx[m] − 0.29·wall_dist_front[m] > 0.31``); a dense one its
-    ``top`` largest terms and how many more. Without ``units``: the scaled features."""
+    quantities of the carrier's body frame (``_in_units``). A one-feature split
+    reads as a threshold on the quantity itself (``goal_dx > 1.55 m``); when all
+    its terms share a unit the split is rescaled to a unit normal in that
+    quantity space, so the threshold is a signed distance in that unit
+    (``0.82·goal_dx[m] − 0.57·wall_dist_front[m] > 0.31 m``); mixed units keep
+    per-unit coefficients. A sparse split lists every term, a dense one its
+    ``top`` largest and how many more. Without ``units``: the scaled features."""
     w = np.asarray(w, dtype=np.float64)
     if units is None:
         return f"{format_linear(w, names, top)} > {_num(b)}"
-    scale = np.array([units[n][0] if n in units else 1.0 for n in names])
-    unit = [units[n][1] if n in units else "" for n in names]
-    coef = w / scale
+    coef, labelled, unit = _in_units(w, names, units)
     used = np.flatnonzero(np.abs(w) >= 0.005)
     if len(used) == 1:
         j = int(used[0])
         thr = b / coef[j]
         return f"{names[j]} {'>' if coef[j] > 0 else '<'} {_num(thr)}{' ' + unit[j] if unit[j] else ''}"
-    labelled = [f"{n}[{u}]" if u else n for n, u in zip(names, unit)]
-    return f"{format_linear(coef, labelled, max(top, len(used)) if len(used) <= 8 else top)} > {_num(b)}"
+    shared = {unit[j] for j in used}
+    if len(shared) == 1 and "" not in shared:
+        norm = float(np.linalg.norm(coef[used]))
+        return f"{format_linear(coef / norm, labelled, _terms_shown(w, top))} > {_num(b / norm)} {shared.pop()}"
+    return f"{format_linear(coef, labelled, _terms_shown(w, top))} > {_num(b)}"
+
+
+def format_gain(k_row: np.ndarray, beta: float, names: list[str], units: dict | None, top: int) -> str:
+    """One leaf gain row, ``tanh(beta + K_l[a].o)`` of Eq. (hard_tree_policy), in
+    the same unit-carrying quantities as the predicates (every term when sparse)."""
+    if units is None:
+        return f"tanh({_num(beta)} {format_linear(k_row, names, top, continued=True)})"
+    coef, labelled, _ = _in_units(k_row, names, units)
+    return f"tanh({_num(beta)} {format_linear(coef, labelled, _terms_shown(k_row, top), continued=True)})"
 
 
 def leaf_path(tree: CarrierTree, leaf: int) -> list[tuple[int, bool]]:
@@ -100,7 +130,7 @@ def describe_tree(tree: CarrierTree, names: list[str], cfg: AuditConfig = AuditC
     for leaf in range(tree.n_leaves):
         gains = {
             ACTION_NAMES[a] if a < len(ACTION_NAMES) else f"a{a}":
-                f"tanh({_num(tree.beta[leaf, a])} {format_linear(tree.K[leaf, a], names, cfg.top_terms, continued=True)})"
+                format_gain(tree.K[leaf, a], tree.beta[leaf, a], names, units, cfg.top_terms)
             for a in range(tree.act_dim)
         }
         entry = {
@@ -181,12 +211,8 @@ def node_positions(depth: int) -> dict[int, tuple[float, float]]:
     return pos
 
 
-def short_predicate(w, b, names, top: int = 2) -> str:
-    return f"{format_linear(w, names, top)} > {_num(b)}"
-
-
 def tree_png(desc: dict, path: str, title: str = "") -> None:
-    """Whole tree, left to right; each box: node predicate (2 terms) or leaf command and visits."""
+    """Whole tree, left to right; each box: node predicate (as `describe_tree` words it) or leaf command and visits."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -196,7 +222,6 @@ def tree_png(desc: dict, path: str, title: str = "") -> None:
     pos = node_positions(depth)
     n_leaves = 2 ** depth
     fig, ax = plt.subplots(figsize=(3.8 * (depth + 1), max(4.0, 0.62 * n_leaves + 1)))
-    names = desc["feature_names"]
     max_visits = max((lf.get("visits", 0) for lf in desc["leaves"]), default=0)
     for k in range(n_int):
         for child, side in ((2 * k + 1, "no"), (2 * k + 2, "yes")):
@@ -206,7 +231,7 @@ def tree_png(desc: dict, path: str, title: str = "") -> None:
                     ha="center", va="center", bbox=dict(fc="white", ec="none", pad=0.5), zorder=2)
     for nd in desc["nodes"]:
         x, y = pos[nd["id"]]
-        ax.text(x, y, f"N{nd['id']}: {short_predicate(nd['w'], nd['b'], names)}", fontsize=8.5,
+        ax.text(x, y, f"N{nd['id']}: {nd['predicate']}", fontsize=8.5,   # as `sage tree show` prints it
                 ha="center", va="center", zorder=3,
                 bbox=dict(boxstyle="round,pad=0.3", fc="#eef3fb", ec="#4a6fa5"))
     for lf in desc["leaves"]:

@@ -5,6 +5,7 @@ actor processes, which only need the numpy forward, never import torch.
 """
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping
 
@@ -188,14 +189,19 @@ def policy_params_from_checkpoint(ckpt: Mapping) -> dict[str, np.ndarray]:
     """The flat numpy tree parameters (``TeamPolicy.export_params``) of a learner
     checkpoint, whatever its method: the TeamPolicy state dict is
     ``ckpt["method"]["policy"]`` (keys ``trees.{i}.W`` ...), and the shapes in it
-    give the team size, observation size, action size and depth. The one path
-    from a checkpoint to the parameters an actor, ``sage eval`` or a bundle runs."""
+    give the team size, observation size, action size and depth, and the run
+    config stored with it (``ckpt["config"]``, TrainConfig JSON) the sparsity:
+    the state holds the dense straight-through weights, so without
+    ``algo.split_k`` / ``leaf_k`` a sparse run would export dense trees. The one
+    path from a checkpoint to the parameters an actor, ``sage eval`` or a bundle runs."""
     state = ckpt.get("method", {}).get("policy") if isinstance(ckpt, Mapping) else None
     if not isinstance(state, Mapping) or "trees.0.W" not in state:
         raise ValueError("checkpoint holds no TeamPolicy state ('method'/'policy'/'trees.0.W')")
     n_agents = 1 + max(int(k.split(".")[1]) for k in state if k.startswith("trees."))
     W, K = state["trees.0.W"], state["trees.0.K"]
     depth = int(round(math.log2(W.shape[0] + 1)))
-    policy = TeamPolicy(n_agents, int(W.shape[1]), act_dim=int(K.shape[1]), depth=depth)
+    algo = json.loads(ckpt["config"]).get("algo", {}) if isinstance(ckpt.get("config"), str) else {}
+    tree_cfg = TreeConfig(depth=depth, split_k=int(algo.get("split_k", 0)), leaf_k=int(algo.get("leaf_k", 0)))
+    policy = TeamPolicy(n_agents, int(W.shape[1]), act_dim=int(K.shape[1]), config=tree_cfg)
     policy.load_state_dict(state)
     return policy.export_params()
