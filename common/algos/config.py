@@ -66,8 +66,9 @@ class AlgoConfig:
     tree_depth: int = 4
     init_log_std: float = -0.5
     # sparse trees (common/policy/tree.py TreeConfig): at most split_k features per split,
-    # leaf_k per leaf gain row; 0 = dense (docs/results_sparse_trees.md)
-    split_k: int = 0
+    # leaf_k per leaf gain row; 0 = dense. One feature per split: every predicate is one
+    # threshold in physical units, at no measured cost (docs/results_sparse_trees.md).
+    split_k: int = 1
     leaf_k: int = 0
     seed: int = 0
 
