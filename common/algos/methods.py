@@ -28,7 +28,9 @@ Adam after global norm clipping, entropy gradient added after the projection;
 Mechanism metrics are measured the same way for every method: W_gap and
 cos(g_ind, g_team) (Eq. talo_gap, no HVP needed) on every minibatch, at the
 parameters before that minibatch's step: ``*_first`` on the first minibatch of
-the update (before any step), ``*_mean`` over all minibatches. See
+the update (before any step), ``*_mean`` over all minibatches. The sequential
+step reuses that measurement's forward and g_ind (its first carrier, at M = 1,
+steps along block i of g_ind), which pays for most of it. See
 docs/interfaces.md for the full list of ``update`` diagnostics.
 
 The centralized critic (common/algos/critic.py) is trained after the actors
@@ -85,6 +87,17 @@ class Minibatch:
         return Minibatch(**{k: v[idx] for k, v in self.__dict__.items()})
 
 
+@dataclass
+class StartPoint:
+    """What the W_gap diagnostics computed at a minibatch's start parameters
+    (detached), for the sequential step to reuse instead of recomputing."""
+    a_st: Tensor        # [B, D] nominal actions
+    center: Tensor      # [B, D] proposal centers (SAIL solution)
+    log_ratio: Tensor   # [B, N]
+    L_ind: Tensor       # [N] surrogate values L_i
+    g_ind: Tensor       # flat g_ind
+
+
 class Method:
     """One learner: hard-tree team policy, centralized critic and optimizers."""
 
@@ -111,6 +124,7 @@ class Method:
         self.value_norm = ValueNormalizer()
         self.trees = list(self.policy.trees)
         self.groups = [list(t.parameters()) for t in self.trees]
+        self.group_sizes = [sum(p.numel() for p in g) for g in self.groups]
         self.actor_params = [p for g in self.groups for p in g]
         # one Adam per carrier (HARL style; TALO steps all of them together)
         self.actor_opts = [torch.optim.Adam(g, lr=cfg.actor_lr, eps=1e-5) for g in self.groups]
@@ -164,8 +178,8 @@ class Method:
                     # drawn after epoch 0's permutation, so that every method sees the same minibatches
                     if order is None or self.cfg.happo_order == "minibatch":
                         order = torch.randperm(self.n_agents, generator=self.gen).tolist()
-                    gap, cache = self._gap_diagnostics(mb, tau, kappa)
-                    stats = self._happo_step(mb, tau, kappa, order=order, cache=cache)
+                    gap, start = self._gap_diagnostics(mb, tau, kappa)
+                    stats = self._happo_step(mb, tau, kappa, order=order, start=start)
                     self.last_happo_orders.append(list(order))
                 stats["actor_step_norm"] = float((self._flat_actor_params() - before).norm())
                 # W_gap, cos(g_ind, g_team): measured at the parameters before this minibatch's step
@@ -406,13 +420,14 @@ class Method:
     def _gap_diagnostics(self, mb: Minibatch, tau: float, kappa: float):
         """W_gap and cos(g_ind, g_team) (Eq. talo_gap, no HVP) at the current
         parameters, for the sequential methods (the joint step measures them
-        itself). Also returns the detached (a_ST, center) forward, which the
-        HAPPO step reuses instead of recomputing it (saves a SAIL solve)."""
+        itself). Also returns the ``StartPoint``, which the HAPPO step reuses:
+        the forward (saves a SAIL solve) and g_ind (its first carrier's gradient)."""
         a_st, center, log_ratio, L_ind, L_team = self._start_point(mb, tau, kappa)
         g_ind, g_team, w, _ = talo_gap(L_ind, L_team, self.groups, separable=not self.uses_sail,
                                        with_hvp=False)
-        return (self._gap_stats(g_ind, g_team, w, log_ratio, mb.active),
-                (a_st.detach().clone(), center.detach().clone()))
+        start = StartPoint(a_st.detach().clone(), center.detach().clone(), log_ratio.detach(),
+                           torch.stack(L_ind).detach(), g_ind)
+        return self._gap_stats(g_ind, g_team, w, log_ratio, mb.active), start
 
     def _joint_step(self, mb: Minibatch, tau: float, kappa: float) -> tuple[dict[str, float], dict]:
         """All carriers stepped together: along g_TALO (Eqs. talo_gap .. talo_projection)
@@ -490,15 +505,15 @@ class Method:
         return float(at_floor or lhs <= rhs + tol), float(lhs < 0.0), float(at_floor)
 
     def _happo_step(self, mb: Minibatch, tau: float, kappa: float, order: list[int] | None = None,
-                    cache: tuple[Tensor, Tensor] | None = None) -> dict[str, float]:
+                    start: StartPoint | None = None) -> dict[str, float]:
         """HAPPO sequential per-carrier clipped updates with the M factor, carriers
-        in ``order`` (a fresh random one if None). ``cache`` = the detached (a_ST,
-        center) forward at the current parameters, if already computed."""
+        in ``order`` (a fresh random one if None). ``start`` = the diagnostics'
+        ``StartPoint`` at the current parameters, if already computed."""
         if order is None:
             order = torch.randperm(self.n_agents, generator=self.gen).tolist()
         factor = torch.ones_like(mb.adv)
-        if cache is not None:
-            a_st_cache, center_cache = cache
+        if start is not None:
+            a_st_cache, center_cache = start.a_st, start.center
         else:
             with torch.no_grad():
                 a_st_cache = self._tree_actions(mb, tau, ())
@@ -509,19 +524,27 @@ class Method:
             self.last_happo_factors[i] = factor.clone()
             tree = self.trees[i]
             block = slice(CARRIER_ACT_DIM * i, CARRIER_ACT_DIM * (i + 1))
-            own = tree(mb.obs[:, i], tau).action
-            a_st = torch.cat([a_st_cache[:, :block.start], own, a_st_cache[:, block.stop:]], dim=-1)
             log_std = torch.cat([t.log_std if j == i else t.log_std.detach()
                                  for j, t in enumerate(self.trees)])
-            # same values as the cached forward: reuse its SAIL solution, build the graph only
-            center = self._center(mb, a_st, kappa, x_star=center_cache)
-            log_ratio = self._log_ratio(mb, center, log_std)[:, i]
             active = mb.active[:, i]
-            surr = self._clipped(log_ratio.exp(), mb.adv * factor) * active
-            entropy = proposal_entropy(log_std)[i]
-            loss = -(surr.mean() + self.cfg.ent_coef * entropy)
             self.actor_opts[i].zero_grad(set_to_none=True)
-            loss.backward()
+            if start is not None and i == order[0]:
+                # M = 1: this carrier's surrogate is L_i at the start point, whose gradient
+                # (block i of g_ind) the diagnostics took already; only the entropy is added
+                log_ratio, surr = start.log_ratio[:, i], start.L_ind[i]
+                grads = unflatten_like(start.g_ind.split(self.group_sizes)[i], self.groups[i])
+                for p, g in zip(self.groups[i], grads):
+                    p.grad = -g                  # ascent on L_i -> descent for Adam
+            else:
+                own = tree(mb.obs[:, i], tau).action
+                a_st = torch.cat([a_st_cache[:, :block.start], own, a_st_cache[:, block.stop:]], dim=-1)
+                # same values as the cached forward: reuse its SAIL solution, build the graph only
+                center = self._center(mb, a_st, kappa, x_star=center_cache)
+                log_ratio = self._log_ratio(mb, center, log_std)[:, i]
+                surr = (self._clipped(log_ratio.exp(), mb.adv * factor) * active).mean()
+            entropy = proposal_entropy(log_std)[i]
+            loss = -(surr + self.cfg.ent_coef * entropy)
+            loss.backward()                      # adds to a reused gradient
             norms.append(float(nn.utils.clip_grad_norm_(self.groups[i], self.cfg.max_grad_norm)))
             self.actor_opts[i].step()
             stats = self._ratio_stats(log_ratio[:, None], active[:, None])

@@ -15,7 +15,12 @@ Given per-carrier surrogates ``L_i`` (Eq. ppo_surrogates), the team surrogate
     g_TALO = g_ind - [Delta]_+ / (||grad W||^2 + eps) * grad W   # Eq. (talo_projection)
 
 ``grad W`` is obtained by differentiating ``W_gap`` through the gradient
-graphs (``create_graph=True``); no Hessian is ever formed.
+graph (``create_graph=True``); no Hessian is ever formed. Gradients are linear,
+so ``d = g_ind - g_team`` is taken directly as the blockwise gradient of
+``L_i - L_team`` and only that one graph is kept: the double backward is the
+single Hessian-vector product ``grad W = J_d^T d`` (``J_d`` the Jacobian of ``d``),
+about half the work of differentiating the g_ind and g_team graphs separately;
+``g_team`` is a plain gradient and ``g_ind = d + g_team``.
 
 What "exact" means for hard trees: autograd differentiates the graph it is
 given. The leaf controllers (``K``, ``beta``) and ``log_std`` enter the hard
@@ -78,11 +83,15 @@ def individual_gradient(
     ``theta_i`` (identity proposal center, or partners detached); then one
     backward pass of ``sum_i L_i`` gives every block at once.
     """
-    if len(losses) != len(groups):
-        raise ValueError(f"{len(losses)} surrogates for {len(groups)} parameter groups")
+    _check_groups(losses, groups)
     if separable:
         return flat_grad(torch.stack(list(losses)).sum(), [p for g in groups for p in g], create_graph)
     return torch.cat([flat_grad(L, g, create_graph) for L, g in zip(losses, groups)])
+
+
+def _check_groups(losses: Sequence[Tensor], groups: ParamGroups) -> None:
+    if len(losses) != len(groups):
+        raise ValueError(f"{len(losses)} surrogates for {len(groups)} parameter groups")
 
 
 def cosine(a: Tensor, b: Tensor, eps: float = 1e-12) -> float:
@@ -147,18 +156,20 @@ def talo_gap(
     """Eq. (talo_gap): returns ``(g_ind, g_team, W_gap, grad_theta W_gap)``.
 
     ``with_hvp=False`` skips the double backward (diagnostics only) and
-    returns ``None`` for the last entry.
+    returns ``None`` for the last entry; W_gap is computed the same way either way.
     """
+    _check_groups(losses, groups)
     params = [p for g in groups for p in g]
-    g_ind = individual_gradient(losses, groups, create_graph=with_hvp, separable=separable)
-    g_team = flat_grad(team_loss, params, create_graph=with_hvp)
-    w_gap = 0.5 * (g_ind - g_team).pow(2).sum()
-    if not with_hvp:
-        return g_ind.detach(), g_team.detach(), w_gap.detach(), None
-    # Double backward: d/dtheta of 1/2||g_ind - g_team||^2 = J^T (g_ind - g_team),
-    # i.e. Hessian-vector products through both gradient graphs.
-    grad_w = flat_grad(w_gap, params, create_graph=False)
-    return g_ind.detach(), g_team.detach(), w_gap.detach(), grad_w
+    # d = g_ind - g_team, block i = grad_{theta_i} (L_i - L_team); the only graph kept
+    if separable:   # block i of grad(sum_j L_j) is grad_{theta_i} L_i
+        d = flat_grad(torch.stack(list(losses)).sum() - team_loss, params, create_graph=with_hvp)
+    else:
+        d = torch.cat([flat_grad(L - team_loss, g, with_hvp) for L, g in zip(losses, groups)])
+    g_team = flat_grad(team_loss, params)
+    w_gap = 0.5 * d.pow(2).sum()
+    # double backward: d/dtheta 1/2||d||^2 = J_d^T d, one Hessian-vector product
+    grad_w = flat_grad(w_gap, params) if with_hvp else None
+    return (d + g_team).detach(), g_team, w_gap.detach(), grad_w
 
 
 def talo_direction(

@@ -1,0 +1,108 @@
+"""The learner's cheaper formulations against the ones they replaced: the
+one-graph W_gap / HVP of ``talo_gap`` (d = g_ind - g_team taken directly as the
+gradient of L_i - L_team) against g_ind and g_team each with
+``create_graph=True`` and the double backward of 1/2 ||g_ind - g_team||^2 through
+both; the HAPPO step reusing the diagnostics' g_ind against recomputing it."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from common.algos import AlgoConfig, make_method
+from common.algos.synthetic import BanditTask, collect
+from common.algos.talo import flat_grad, individual_gradient, talo_gap
+
+F64 = torch.float64
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def two_graph_gap(losses, team, groups, separable):
+    """The former ``talo_gap``: both gradient graphs kept, HVP through both."""
+    params = [p for g in groups for p in g]
+    g_ind = individual_gradient(losses, groups, create_graph=True, separable=separable)
+    g_team = flat_grad(team, params, create_graph=True)
+    w = 0.5 * (g_ind - g_team).pow(2).sum()
+    return g_ind.detach(), g_team.detach(), w.detach(), flat_grad(w, params)
+
+
+def random_model(seed: int, coupled: bool, n: int = 3, dim: int = 5):
+    """Smooth PPO-like surrogates on random inputs; ``coupled``: L_i depends on
+    every block (like SAIL), else on theta_i only (identity center)."""
+    gen = torch.Generator().manual_seed(seed)
+    thetas = [torch.randn(dim, generator=gen, dtype=F64).requires_grad_() for _ in range(n)]
+    A = [torch.randn(dim, dim * n, generator=gen, dtype=F64) * 0.5 for _ in range(n)]
+    x = torch.randn(32, dim, generator=gen, dtype=F64)
+    adv = torch.randn(32, generator=gen, dtype=F64)
+    full = torch.cat(thetas)
+    logr = [0.3 * x @ torch.tanh(A[i] @ full if coupled else A[i][:, i * dim:(i + 1) * dim] @ thetas[i])
+            + 0.1 * x @ thetas[i] for i in range(n)]
+
+    def clip(r):
+        return torch.minimum(r * adv, r.clamp(0.8, 1.2) * adv).mean()
+
+    L = [clip(lr.exp()) for lr in logr]
+    team = clip(torch.stack(logr).sum(0).exp())
+    return [[t] for t in thetas], L, team
+
+
+def prepared_double(name: str, seed: int = 1, obs: int = 6):
+    m = make_method(name, AlgoConfig(), obs, 0)
+    task = BanditTask(obs_dim=obs, seed=seed, n_rows=10, row_frac=0.5, human_rate=0.2)
+    batch = collect(m, task, 6, 8, 0.5, np.random.default_rng(seed))
+    m.policy.double()
+    mb, _ = m._prepare(batch)
+    return m, mb
+
+
+def flat(m):
+    return torch.cat([p.detach().reshape(-1) for p in m.actor_params])
+
+
+def assert_same(new, old, rtol=1e-10, atol=1e-12):
+    for a, b in zip(new, old):
+        torch.testing.assert_close(torch.as_tensor(a), torch.as_tensor(b), rtol=rtol, atol=atol)
+
+
+@pytest.mark.parametrize("coupled", [True, False])
+@pytest.mark.parametrize("seed", range(5))
+def test_one_graph_gap_equals_two_graph_gap_on_random_models(seed, coupled):
+    groups, L, team = random_model(seed, coupled)
+    new = talo_gap(L, team, groups, separable=not coupled)
+    old = two_graph_gap(L, team, groups, separable=not coupled)
+    assert float(old[2]) > 1e-6 and float(old[3].norm()) > 1e-6
+    assert_same(new, old)
+    # the diagnostics path (no HVP) gives the same g_ind, g_team and W_gap
+    assert_same(talo_gap(L, team, groups, separable=not coupled, with_hvp=False)[:3], old[:3])
+
+
+@pytest.mark.parametrize("name", ["sage", "talo_cbf"])
+def test_one_graph_gap_equals_two_graph_gap_on_the_learner(name):
+    """The learner's own surrogates (hard trees, SAIL center or identity, human
+    blocks) in double precision, off-policy so that W_gap > 0 for both."""
+    m, mb = prepared_double(name)
+    with torch.no_grad():   # off-policy start point
+        for p in m.actor_params:
+            p.add_(0.05 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel()), dtype=F64))
+    _, _, _, L, team = m._start_point(mb, 0.5, 3.0)
+    new = talo_gap(L, team, m.groups, separable=not m.uses_sail)
+    old = two_graph_gap(L, team, m.groups, separable=not m.uses_sail)
+    assert float(old[2]) > 1e-8
+    assert_same(new, old, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["happo", "sail_cbf"])
+def test_happo_step_reusing_the_diagnostics_gradient_is_the_plain_step(name):
+    """The first carrier's HAPPO gradient (M = 1) taken from the diagnostics' g_ind
+    gives the same step, factors and statistics as recomputing it."""
+    (a, mb), (b, _) = prepared_double(name), prepared_double(name)
+    order = [2, 0, 1]
+    _, start = a._gap_diagnostics(mb, 0.5, 3.0)
+    sa = a._happo_step(mb, 0.5, 3.0, order=order, start=start)
+    sb = b._happo_step(mb, 0.5, 3.0, order=order)
+    assert not torch.equal(flat(a), flat(prepared_double(name)[0]))   # a step was taken
+    torch.testing.assert_close(flat(a), flat(b), rtol=1e-9, atol=1e-12)
+    for i in order:
+        torch.testing.assert_close(a.last_happo_factors[i], b.last_happo_factors[i], rtol=1e-9, atol=1e-12)
+    assert sa == pytest.approx(sb, rel=1e-9, abs=1e-12)
