@@ -66,8 +66,8 @@ def valid_body(kind: str, sizes: dict, rng: np.random.Generator) -> dict:
 
 def seed_payloads() -> list[bytes]:
     rng = np.random.default_rng(SEED)
-    small = {s: 1 for s in "TKMOSB"}
-    other = {"T": 2, "K": 2, "M": 0, "O": 2, "S": 3, "B": 2}           # zero-size arrays too
+    small = {s: 1 for s in "TKMOSBD"}
+    other = {"T": 2, "K": 2, "M": 0, "O": 2, "S": 3, "B": 2, "D": 3}   # zero-size arrays too
     out = []
     for kind in wire.SCHEMAS:
         for i, sizes in enumerate((small, other)):
