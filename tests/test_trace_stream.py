@@ -68,7 +68,8 @@ def test_actor_publishes_one_trace_every_n_steps(tmp_path, pipelined):
     threading.Thread(target=ShieldService(cfg, bus, stop=stop, solve=fake_solve).run, daemon=True).start()
     env = [FakeBatchEnv(2), FakeBatchEnv(1, seed=1)] if pipelined else FakeBatchEnv(2)
     actor = ActorService(cfg, bus, 0, stop=stop, env=env, propose=fake_propose)
-    threading.Thread(target=actor.run, daemon=True).start()
+    th = threading.Thread(target=actor.run, daemon=True)
+    th.start()
     wait_for(lambda: actor.state == "waiting")   # subscribed to parameters
     body = {"version": 4, "incarnation": "i", "method": cfg.method, "params": FakeMethod().policy_params(),
             "settings": {"kappa": 1.0}}
@@ -78,6 +79,7 @@ def test_actor_publishes_one_trace_every_n_steps(tmp_path, pipelined):
         steps = actor.steps_taken
     finally:
         stop.set()
+        th.join(5)   # before the session closes under it
         bus.close()
     assert steps // 3 - 1 <= len(traces) <= steps // 3 + 1
     K = 3 if pipelined else 2

@@ -199,7 +199,8 @@ class ActorService(Service):
             elif self.shield_failures <= 3 or self.shield_failures % 100 == 0:
                 self.log.warning("shield query failed (%s); retrying, nothing executed", why)
             self.publish_status()
-            self.stop.wait(backoff)
+            if self.stop.wait(backoff):
+                break
             backoff = min(backoff * 2, 0.5)
             t0, replies = time.perf_counter(), self.bus.replies(self.shield_key, payload,
                                                                 timeout=acfg.shield_timeout_s)
