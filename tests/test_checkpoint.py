@@ -1,4 +1,5 @@
 """Atomic checkpoints and learner resume."""
+import json
 import sys
 import threading
 from pathlib import Path
@@ -91,5 +92,23 @@ def test_learner_resumes_from_checkpoint_and_version_keeps_increasing(tmp_path):
         assert actor.params["incarnation"] == second.incarnation
         lines = (Path(cfg.run_dir) / "metrics.jsonl").read_text().splitlines()
         assert len(lines) == 5
+    finally:
+        bus.close()
+
+
+def test_learner_refuses_a_checkpoint_whose_trees_mean_something_else(tmp_path):
+    """The same dense straight-through weights are another policy under another
+    split_k: resuming a sparse run as dense (or the reverse) is refused, by name."""
+    cfg = TrainConfig(run_id="ck", run_dir=str(tmp_path / "run"), updates=2, chunk_len=4, actors=1,
+                      envs_per_actor=2, checkpoint_every=1, method="happo", algo={"split_k": 1}).validate()
+    bus = Bus.open(inprocess=True)
+    try:
+        run_learner(cfg, bus, FakeMethod())
+        dense = TrainConfig.from_dict(json.loads(cfg.to_json()))
+        dense.override("algo", "split_k", 0)
+        with pytest.raises(ValueError, match="algo.split_k = 1, this run has 0"):
+            LearnerService(dense, bus, 0, method=FakeMethod()).try_resume()
+        same = LearnerService(TrainConfig.from_dict(json.loads(cfg.to_json())), bus, 0, method=FakeMethod())
+        assert same.try_resume() and same.resumed_from == 2
     finally:
         bus.close()

@@ -268,6 +268,7 @@ class LearnerService(Service):
             # no checkpoint yet: still never reuse a version an earlier incarnation published
             self.version = self.published_floor() + 1
             return False
+        self._check_tree_settings(ck)
         self.method.load_state_dict(ck["method"])
         torch.set_rng_state(ck["rng"]["torch"])
         np.random.set_state(("MT19937", ck["rng"]["numpy_mt19937"].numpy().astype(np.uint32),
@@ -283,6 +284,23 @@ class LearnerService(Service):
         self.unfiltered_steps = int(ck.get("unfiltered_steps", 0))
         self.log.info("resumed from checkpoint version %d (update %d)", self.resumed_from, self.updates)
         return True
+
+    TREE_SETTINGS = {"tree_depth": 4, "split_k": 0, "leaf_k": 0}   # absent from a checkpoint = its value then
+
+    def _check_tree_settings(self, ck: dict) -> None:
+        """Refuse a checkpoint whose trees mean something else under this config:
+        the state holds dense straight-through weights, so the same tensors under
+        another ``split_k`` are another policy (seen: a k=1 run resumed dense went
+        from SR 1.0 to 0.0)."""
+        try:
+            saved = json.loads(ck.get("config") or "{}").get("algo", {})
+        except (TypeError, ValueError):
+            saved = {}
+        for key, absent in self.TREE_SETTINGS.items():
+            was, now = saved.get(key, absent), getattr(self.cfg.algo, key)
+            if was != now:
+                raise ValueError(f"{self.ckpt_dir}: its trees were trained with algo.{key} = {was}, this run has "
+                                 f"{now}; resume with --set algo.{key}={was} or start a new run directory")
 
     # ------------------------------------------------------------- budget
     def progress(self) -> float:
