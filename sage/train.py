@@ -1,5 +1,6 @@
-"""``sage train`` (the main job: in-process services by default, or supervised
-processes) and ``sage up`` (the supervisor alone, e.g. one host's share of a run).
+"""``sage train`` (the main job: in-process services by default, supervised
+processes, or processes placed on a Ray cluster) and ``sage up`` (the supervisor
+alone, e.g. one host's share of a run, or the whole run on a Ray cluster).
 
 Every default comes from ``services.config.TrainConfig``; the flags only
 override it.
@@ -19,6 +20,8 @@ from common.algos.registry import ALL_METHODS, method_spec
 from common.env.scenarios import SCENARIOS
 from common.evaluation.deployment import evaluate_policy
 from common.rundir import RunDir, atomic_write_text
+from deploy import ray_run
+from deploy.ray_run import ClusterError, RayPlacement, run_on_ray
 from deploy.sage_run import METRICS_OFFSETS, default_actor_count, parse_ids, run_supervised
 from deploy.supervisor import EXIT_GAVE_UP, SupervisorConfig
 from sage.errors import UsageError, nonneg_int, one_line, port, positive_float, positive_int, user_input
@@ -45,7 +48,8 @@ def register(commands, bench) -> None:
     p.add_argument("--seed", type=nonneg_int, default=d.seed)
     p.add_argument("--run-id", default="")
     p.add_argument("--run-dir", default="")
-    p.add_argument("--mode", default=d.mode, choices=("inprocess", "supervised"))
+    p.add_argument("--mode", default=d.mode, choices=("inprocess", "supervised", "ray"),
+                   help="ray: the supervised processes placed on a Ray cluster (--ray; extra .[cluster])")
     p.add_argument("--eval-episodes", type=nonneg_int, default=d.eval_episodes)
     p.add_argument("--metrics-port", type=port, default=d.ports.inprocess,
                    help="Prometheus port (in-process registry); 0 = off")
@@ -56,12 +60,52 @@ def register(commands, bench) -> None:
                    help="override a config field, e.g. --set algo.actor_lr=1e-3 --set env.max_steps=400 "
                         "--set shield.window_s=0.001 --set train.deploy_probe_every=10 (value parsed as JSON, else string)")
     p.add_argument("--quiet", action="store_true", help="no live progress line")
+    add_ray_arguments(p, "implies --mode ray; default with --mode ray: auto")
     p.set_defaults(func=cmd_train)
 
     p = commands.add_parser("up", help="run learner, shield and actors as supervised processes (restarts, "
                                        "clean shutdown, live status)")
     add_up_arguments(p)
     p.set_defaults(func=cmd_up)
+
+
+def add_ray_arguments(p, note: str) -> None:
+    """``--ray ADDRESS`` and ``--ray-resources`` (``sage train``, ``sage up``); ``note`` ends the help."""
+    p.add_argument("--ray", default=None, metavar="ADDRESS",
+                   help=f"place the services on the Ray cluster at ADDRESS: auto (a running cluster), HOST:PORT "
+                        f"(its head) or local (a fresh one-machine instance); {note} (deploy/README.md, \"Ray cluster\")")
+    p.add_argument("--ray-resources", action="append", default=[], metavar="SERVICE=RESOURCE:AMOUNT",
+                   help="extra Ray resources of a service (actor-1) or role (actor), e.g. to pin it to the nodes "
+                        "that have a custom resource: --ray-resources learner=gpu_host:1 (repeatable)")
+
+
+def ray_placement(args, max_restarts: int | None = None) -> RayPlacement:
+    """The Ray placement of ``--ray``/``--ray-resources``; bad values are a ``UsageError``."""
+    with user_input():
+        placement = RayPlacement(address=args.ray or "auto", resources=ray_run.parse_resources(args.ray_resources))
+    if max_restarts is not None:
+        placement.max_restarts = max_restarts
+    return placement
+
+
+def join_cluster(placement: RayPlacement, cfg: TrainConfig, roles=ROLES, actor_ids=None) -> None:
+    """Connect to the cluster and check that it can take the run, before anything is
+    written: no Ray, a bad address, nothing there or too few resources is a ``UsageError``."""
+    names = ray_run.service_names(cfg, roles, actor_ids)
+    with user_input():
+        ray = ray_run.connect(placement.address, ray_run.cpus_for_local(placement, names))
+        ray_run.check_cluster(ray, placement, names)
+
+
+def train_mode(args) -> str:
+    """``--mode``, where ``--ray ADDRESS`` alone means ``--mode ray``."""
+    if args.ray is None:
+        if args.ray_resources and args.mode != "ray":
+            raise UsageError("--ray-resources places services on a Ray cluster: use it with --mode ray or --ray")
+        return args.mode
+    if args.mode == "supervised":
+        raise UsageError(f"--ray {args.ray}: use --mode ray (the supervised processes placed on the cluster)")
+    return "ray"
 
 
 # ----------------------------------------------------------------- sage train
@@ -88,7 +132,10 @@ def _apply_args(cfg: TrainConfig, args) -> TrainConfig:
     cfg.scenario, cfg.method, cfg.updates, cfg.minutes = args.scenario, args.method, updates, args.minutes
     cfg.actors, cfg.envs_per_actor, cfg.chunk_len = args.actors, args.envs_per_actor, args.chunk_len
     cfg.shields = args.shields
-    cfg.max_lag, cfg.seed, cfg.mode, cfg.eval_episodes = args.max_lag, args.seed, args.mode, args.eval_episodes
+    # Ray places the same processes as the supervisor: the run config's mode stays "supervised"
+    mode = train_mode(args)
+    cfg.max_lag, cfg.seed, cfg.eval_episodes = args.max_lag, args.seed, args.eval_episodes
+    cfg.mode = "supervised" if mode == "ray" else mode
     cfg.ports.inprocess = args.metrics_port
     if args.human_slot is not None:
         cfg.env = dataclasses.replace(cfg.env, human_slot=args.human_slot)
@@ -203,27 +250,32 @@ def final_eval(cfg: TrainConfig, params: dict) -> dict:
 def cmd_train(args) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     cfg = config_from_args(args)
+    mode = train_mode(args)
     run = RunDir(cfg.run_dir)
     clash = _resume_clash(run, cfg)
     if clash:
         print(f"sage train: {run.root} holds a run of {clash}; the learner would resume its checkpoints. "
               "Use another --run-dir (or the same method and scenario to resume).", file=sys.stderr)
         return 2
+    placement = ray_placement(args) if mode == "ray" else None
+    if placement is not None:
+        join_cluster(placement, cfg)
     cfg_path = save_run_config(cfg, run)
     print(f"run {cfg.run_id}: {cfg.method} on {cfg.scenario}, {cfg.actors} actor(s) x {cfg.envs_per_actor} envs, "
-          f"mode {cfg.mode}, run dir {run.root}", file=sys.stderr)
+          f"mode {mode}, run dir {run.root}", file=sys.stderr)
     if cfg.tensorboard:   # the learner writes event files when tensorboardX imports
         print(f"tensorboard: events in {run.tensorboard}" if tensorboard_available() else
               "tensorboard: off (pip install 'sage-transport[tensorboard]' for event files)", file=sys.stderr)
-    if cfg.mode == "supervised":
-        code = int(run_supervised(str(cfg_path)) or 0)
+    if mode in ("supervised", "ray"):
+        code = int(run_supervised(str(cfg_path)) or 0) if mode == "supervised" else \
+            run_ray(cfg_path, placement)
         if code:
             return code
         try:
             _, params, version = load_run(run.root)
         except FileNotFoundError:
             params, version = None, None
-        summary = {"mode": "supervised", "version": version, **last_progress(run)}
+        summary = {"mode": mode, "version": version, **last_progress(run)}
     else:
         out = run_inprocess(cfg, progress=not args.quiet)
         params = out.pop("params")
@@ -239,6 +291,18 @@ def cmd_train(args) -> int:
     print(json.dumps({"run_dir": str(run.root), "version": summary.get("version"),
                       "updates": summary.get("updates")}))
     return 0
+
+
+def run_ray(cfg_path: Path, placement: RayPlacement, **kw) -> int:
+    """``run_on_ray`` with its one-line outcomes: the cluster refusing the run is a
+    ``UsageError``, a router that never came up exit code 1."""
+    try:
+        return run_on_ray(cfg_path, placement=placement, **kw)
+    except ClusterError as exc:
+        raise UsageError(str(exc)) from None
+    except RuntimeError as exc:   # e.g. the local router never came up
+        print(f"ray: {exc}", file=sys.stderr)
+        return EXIT_GAVE_UP
 
 
 def save_run_config(cfg: TrainConfig, run: RunDir) -> Path:
@@ -288,7 +352,9 @@ def add_up_arguments(p: argparse.ArgumentParser) -> None:
                    help="Prometheus ports: base learner, base+1+k shield shard k, base+10+i actor i (e.g. 9400; 0 = off)")
     p.add_argument("--restart-budget", type=nonneg_int, default=SupervisorConfig().restart_budget,
                    help="restarts of one service allowed within the supervisor's window before it gives up "
-                        "(raise it for chaos runs, actor.chaos_crash_prob)")
+                        "(raise it for chaos runs, actor.chaos_crash_prob); with --ray: Ray's max_restarts "
+                        "per service over the whole run")
+    add_ray_arguments(p, "the router, shields, learner and actors of this run as Ray actors")
     fresh = p.add_argument_group("fresh run (without --config)")
     fresh.add_argument("--scenario", default=None, choices=sorted(SCENARIOS))
     fresh.add_argument("--method", default=None, choices=ALL_METHODS)
@@ -351,6 +417,12 @@ def cmd_up(args) -> int:
         if max(ids) >= cfg.actors:
             raise UsageError(f"--actor-ids {args.actor_ids}: the run has {cfg.actors} actor(s), "
                              f"ids 0..{cfg.actors - 1}")
+    if args.ray_resources and args.ray is None:
+        raise UsageError("--ray-resources places services on a Ray cluster: use it with --ray ADDRESS")
+    if args.ray is not None:
+        placement = ray_placement(args, max_restarts=args.restart_budget)
+        join_cluster(placement, cfg, roles, ids)
+        return run_ray(save_run_config(cfg, RunDir(cfg.run_dir)), placement, roles=roles, actor_ids=ids)
     path = save_run_config(cfg, RunDir(cfg.run_dir))
     try:
         return run_supervised(path, roles=roles, actor_ids=ids,

@@ -1,0 +1,722 @@
+"""A SAGE run placed on a Ray cluster: Ray only places and restarts the
+processes; the services talk over Zenoh + msgpack exactly as under the local
+supervisor (``deploy/sage_run.py``).
+
+    sage up --ray auto --actors 8 --updates 500        # a running cluster (`ray start --head`)
+    sage train --mode ray --ray 10.0.0.1:6379 ...      # the same, from sage train
+    sage train --mode ray --ray local                  # a one-machine Ray instance of this process
+
+Every service -- the router, each shield shard, the learner, each actor -- is
+one Ray actor (``ServiceRunner``) with its declared resources (``RayPlacement``:
+1 CPU per actor, shield and learner, none for the router). Creating the Ray
+actor starts the service's documented entry point, the same command line the
+local supervisor runs (``service_specs`` / ``router_spec``), as a child process
+of the Ray worker. When that process exits non-zero the Ray actor exits with
+it, so Ray's restart policy (``max_restarts``) re-creates the actor, which
+starts the command again; a restarted learner resumes from its newest
+checkpoint, as it does under the supervisor. The learner's exit 0 (update or
+time budget reached) ends the run: a ``control`` stop goes to every service,
+then each process gets SIGTERM and, after ``term_deadline_s``, SIGKILL; the Ray
+actors are killed last. Ctrl-C (SIGINT) or SIGTERM does the same; exit code
+128 + signal.
+
+Where things run and what they need (deploy/README.md, "Ray cluster"):
+
+* the driver (this process) must run on a node of the cluster; the router,
+  the learner and the log sink are pinned to that node, so the run directory
+  (config, checkpoints, metrics, logs, ``supervisor.jsonl``, ``status.json``)
+  is the driver's, as with ``sage up``; actors are spread over the nodes;
+* each service's stdout/stderr is shipped back through Ray to
+  ``<run_dir>/logs/<service>.log`` on the driver's node (``LogSink``), and the
+  config file the children read is copied to the same path on every node that
+  lacks it, so no shared filesystem is needed;
+* every node has the same Python environment at the same path (Ray needs that
+  anyway);
+* without ``transport.connect`` the local router listens on 127.0.0.1 of the
+  driver's node, which only services on that host reach: a cluster of several
+  hosts needs a router every node can reach (``--connect``), else the run is
+  refused before anything starts.
+
+Ray is imported only when a function here is called: nothing else needs it.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+from common.rundir import RunDir, atomic_write_text
+from common.status import LiveLine, StatusBoard
+from common.transport import TlsFiles
+from deploy.sage_run import router_spec, service_specs
+from deploy.supervisor import EXIT_GAVE_UP, ServiceSpec, free_tcp_port
+from services.config import TrainConfig
+from services.launcher import ROLES, run_members
+
+INSTALL_HINT = "pip install -e '.[cluster]'"
+# the resource names that Ray takes as num_cpus / num_gpus, never in `resources`
+_BUILTIN_RESOURCES = {"CPU": "num_cpus", "GPU": "num_gpus"}
+
+
+class ClusterError(ValueError):
+    """The cluster cannot take the run (no Ray, bad address, missing resources):
+    a one-line reason, before anything is started."""
+
+
+@dataclass
+class RayPlacement:
+    """How the run's services are placed and restarted on the cluster."""
+    address: str = "auto"              # "auto" (a running cluster), "HOST:PORT", or "local" (a fresh instance)
+    cpus: dict[str, float] = field(default_factory=lambda: {"router": 0.0, "shield": 1.0, "learner": 1.0,
+                                                            "actor": 1.0})
+    # extra Ray resources by service name ("actor-1") or role ("actor"), e.g. a custom
+    # resource that only some nodes have pins those services there
+    resources: dict[str, dict[str, float]] = field(default_factory=dict)
+    max_restarts: int = 5              # per service, over the whole run (Ray's restart policy)
+    restart_delay_s: float = 0.5       # a re-created service waits this long before it starts again
+    term_deadline_s: float = 15.0      # SIGTERM, wait this long, then SIGKILL
+    placement_timeout_s: float = 120.0  # a service the cluster cannot place by then ends the run
+    ready_timeout_s: float = 30.0      # the local router must accept TCP connections by then
+    poll_s: float = 0.1
+    status_period_s: float = 1.0       # live line and status.json refresh
+    status_log_period_s: float = 10.0  # when stderr is not a terminal: one status line this often
+
+    def request(self, name: str) -> dict:
+        """The Ray actor options of service ``name``: ``num_cpus`` of its role, plus
+        its extra resources (role first, then the service's own)."""
+        role = role_of(name)
+        extra = {**self.resources.get(role, {}), **self.resources.get(name, {})}
+        opts: dict = {"num_cpus": float(self.cpus.get(role, 1.0)), "resources": {}}
+        for key, amount in extra.items():
+            if key in _BUILTIN_RESOURCES:
+                opts[_BUILTIN_RESOURCES[key]] = float(amount)
+            else:
+                opts["resources"][key] = float(amount)
+        return opts
+
+
+def role_of(name: str) -> str:
+    """``actor-3`` -> ``actor``, ``shield-1`` -> ``shield``, ``learner``, ``router``."""
+    return name.split("-", 1)[0]
+
+
+def parse_resources(items: Sequence[str]) -> dict[str, dict[str, float]]:
+    """``["actor-1=node_b:1", "learner=GPU:1,big_mem:1"]`` -> ``{"actor-1": {"node_b": 1.0}, ...}``;
+    a ``ValueError`` naming a bad item."""
+    out: dict[str, dict[str, float]] = {}
+    for item in items:
+        name, sep, rest = item.partition("=")
+        if not sep or not name.strip() or not rest.strip():
+            raise ValueError(f"--ray-resources {item!r}: expected SERVICE=RESOURCE:AMOUNT[,RESOURCE:AMOUNT]")
+        res = out.setdefault(name.strip(), {})
+        for part in filter(None, (p.strip() for p in rest.split(","))):
+            key, sep, amount = part.partition(":")
+            try:
+                value = float(amount) if sep else 1.0
+            except ValueError:
+                raise ValueError(f"--ray-resources {item!r}: {amount!r} is not a number") from None
+            if not key or not value > 0 or value == float("inf"):
+                raise ValueError(f"--ray-resources {item!r}: need RESOURCE:AMOUNT with an amount > 0")
+            res[key] = value
+    return out
+
+
+# ----------------------------------------------------------------- connecting
+def import_ray():
+    """The ``ray`` module, or a ``ClusterError`` saying how to install it."""
+    try:
+        import ray
+    except ImportError:
+        raise ClusterError(f"Ray is not installed; it is the optional extra 'cluster': {INSTALL_HINT}") from None
+    return ray
+
+
+def connect(address: str, local_cpus: int | None = None):
+    """Join the Ray cluster at ``address`` (``auto``, ``HOST:PORT`` or ``local``) as
+    its driver, once per process; the ``ray`` module. ``local`` starts a fresh
+    one-machine instance with ``local_cpus`` logical CPUs (default: the cores). A
+    ``ClusterError`` with one line when Ray is missing or nothing answers there."""
+    ray = import_ray()
+    if ray.is_initialized():
+        return ray
+    address = address.strip()
+    if address.startswith("ray://"):
+        raise ClusterError(f"--ray {address}: Ray Client addresses are not supported; run sage on a node of "
+                           "the cluster (the driver's node holds the run directory) and give the GCS address")
+    if address not in ("auto", "local"):
+        host, sep, port = address.rpartition(":")
+        if not sep or not host or not port.isdigit():
+            raise ClusterError(f"--ray {address!r}: expected auto, local or HOST:PORT (the head's GCS address)")
+        # ray.init() waits minutes for a GCS that is not there: fail fast instead
+        try:
+            with socket.create_connection((host, int(port)), timeout=5.0):
+                pass
+        except OSError as exc:
+            raise ClusterError(f"--ray {address}: no Ray cluster answers there ({exc.strerror or exc})") from None
+    import logging
+
+    try:
+        # services log into their own files (LogSink); Ray's worker logs stay on the nodes
+        extra = {"num_cpus": local_cpus} if address == "local" and local_cpus else {}
+        ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING, **extra)
+    except ConnectionError as exc:
+        hint = " (start one with `ray start --head`, or use --ray local)" if address == "auto" else ""
+        raise ClusterError(f"--ray {address}: {str(exc).splitlines()[0]}{hint}") from None
+    return ray
+
+
+def service_names(cfg: TrainConfig, roles: Sequence[str] = ROLES, actor_ids: Sequence[int] | None = None
+                  ) -> list[str]:
+    """The services a run of ``cfg`` places: the local router unless the config names one, then its members."""
+    ids = list(actor_ids) if actor_ids is not None else list(range(cfg.actors))
+    return ([] if cfg.transport.connect else ["router"]) + [m.name for m in run_members(ids, roles, cfg.shields)]
+
+
+def cpus_for_local(placement: RayPlacement, names: Sequence[str]) -> int:
+    """Logical CPUs for a ``--ray local`` instance: the cores, or what the services ask for if more."""
+    asked = sum(placement.request(n)["num_cpus"] for n in names)
+    return max(os.cpu_count() or 1, int(asked + 0.999))
+
+
+def cluster_summary(ray) -> dict:
+    """Alive nodes, their addresses and the cluster's total resources."""
+    nodes = [n for n in ray.nodes() if n.get("Alive")]
+    return {"nodes": len(nodes), "hosts": sorted({n["NodeManagerAddress"] for n in nodes}),
+            "resources": {k: v for k, v in ray.cluster_resources().items() if not k.startswith("node:")}}
+
+
+def check_cluster(ray, placement: RayPlacement, names: Sequence[str]) -> dict:
+    """The cluster's summary, or a ``ClusterError`` when it cannot take the services
+    ``names``: a local router (127.0.0.1) on a cluster of several hosts, or fewer
+    resources than the services ask for in all."""
+    cluster = cluster_summary(ray)
+    if "router" in names and len(cluster["hosts"]) > 1:
+        raise ClusterError(f"the cluster spans {len(cluster['hosts'])} hosts ({', '.join(cluster['hosts'])}) but the "
+                           "run's router would listen on 127.0.0.1 of this one; start a router every node can reach "
+                           "and give it with --connect (deploy/README.md, \"Ray cluster\")")
+    check_capacity({n: placement.request(n) for n in names}, cluster["resources"])
+    return cluster
+
+
+def check_capacity(requests: dict[str, dict], total: dict[str, float]) -> None:
+    """A ``ClusterError`` when the cluster as a whole lacks what the services ask for
+    (Ray would leave them pending forever)."""
+    need: dict[str, float] = {}
+    for opts in requests.values():
+        need["CPU"] = need.get("CPU", 0.0) + opts.get("num_cpus", 0.0)
+        need["GPU"] = need.get("GPU", 0.0) + opts.get("num_gpus", 0.0)
+        for key, amount in opts.get("resources", {}).items():
+            need[key] = need.get(key, 0.0) + amount
+    short = [f"{key} {amount:g} (cluster has {total.get(key, 0.0):g})" for key, amount in sorted(need.items())
+             if amount > total.get(key, 0.0) + 1e-9]
+    if short:
+        raise ClusterError(f"the run's {len(requests)} services need more than the cluster has: {', '.join(short)}; "
+                           "add nodes, run fewer actors, or change --ray-resources")
+
+
+# ----------------------------------------------------------------- inside Ray
+def child_command(argv: Sequence[str]) -> list[str]:
+    """``argv`` behind ``deploy.pdeathsig``: the process gets SIGTERM when the Ray
+    worker that started it dies (``ray.kill``, a crashed or lost worker)."""
+    if not sys.platform.startswith("linux"):
+        return list(argv)
+    return [argv[0], "-m", "deploy.pdeathsig", str(os.getpid()), "--", *argv]
+
+
+def kill_group(pid: int, sig: int) -> None:
+    try:
+        os.killpg(pid, sig)   # the child leads its own group: pgid == pid
+    except (ProcessLookupError, PermissionError):
+        pass
+
+
+def run_logged(argv: Sequence[str], log_path: str | Path, env: dict | None = None) -> int:
+    """Run ``argv`` in a Ray task, its output appended to ``log_path`` (on the task's
+    node); the exit code. The process dies with the task (cancelled, worker lost)."""
+    Path(log_path).parent.mkdir(parents=True, exist_ok=True)
+    with open(log_path, "ab") as log:
+        proc = subprocess.Popen(child_command(argv), stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
+                                start_new_session=True, env=env)
+    try:
+        return proc.wait()
+    finally:
+        kill_group(proc.pid, signal.SIGKILL)   # anything it left behind in its group (or a cancelled task)
+
+
+def _materialize(path: str, text: str) -> None:
+    """``text`` at ``path`` on this node unless it is already there (the driver's node,
+    a shared filesystem)."""
+    p = Path(path)
+    try:
+        if p.read_text() == text:
+            return
+    except OSError:
+        pass
+    atomic_write_text(p, text)
+
+
+class LogSink:
+    """A Ray actor on the driver's node: appends the services' output to
+    ``<run_dir>/logs/<service>.log`` and keeps each service's last exit (pid, code)."""
+
+    def __init__(self, log_dir: str):
+        self.log_dir = Path(log_dir)
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        self.files: dict[str, object] = {}
+        self.exits: dict[str, tuple[int, int]] = {}
+
+    def write(self, name: str, data: bytes) -> None:
+        f = self.files.get(name)
+        if f is None:
+            f = self.files[name] = open(self.log_dir / f"{name}.log", "ab")
+        f.write(data)
+        f.flush()
+
+    def exited(self, name: str, pid: int, code: int, restarting: bool) -> None:
+        self.exits[name] = (pid, code)
+        then = "Ray restarts it" if restarting else "not restarted"
+        self.write(name, f"ray: {name} (pid {pid}) exited with code {code}; {then}\n".encode())
+
+    def last_exit(self, name: str) -> tuple[int, int] | None:
+        return self.exits.get(name)
+
+    def close(self) -> None:
+        for f in self.files.values():
+            f.close()
+        self.files.clear()
+
+
+class ServiceRunner:
+    """A Ray actor that is one service: creating it starts the service's command
+    (its own process group, output shipped to the ``LogSink``); ``wait`` returns
+    the exit code, and a non-zero exit that no ``stop`` asked for ends the Ray
+    actor's process too, so Ray re-creates the actor (``max_restarts``) and with
+    it the service."""
+
+    def __init__(self, name: str, argv: list[str], *, files: dict[str, str], cwd: str, env: dict[str, str],
+                 sink: str, restart_delay_s: float):
+        import ray
+
+        ctx = ray.get_runtime_context()
+        # the sink by name, not a handle argument: a re-created actor must not depend on
+        # constructor arguments kept in the object store
+        self.name, self.sink = name, ray.get_actor(sink)
+        self.restarted = bool(ctx.was_current_actor_reconstructed)
+        self.node = ctx.get_node_id()
+        self.host = ray.util.get_node_ip_address()
+        self.stopping = False
+        if self.restarted:
+            time.sleep(restart_delay_s)   # no tight loop of a service that dies at start
+        for path, text in files.items():
+            _materialize(path, text)
+        self.proc = subprocess.Popen(child_command(argv), stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                     stderr=subprocess.STDOUT, start_new_session=True,
+                                     cwd=cwd if os.path.isdir(cwd) else None, env={**os.environ, **env})
+        what = "restarted" if self.restarted else "started"
+        self._ship(f"ray: {name} {what} as pid {self.proc.pid} on node {self.node[:12]} ({self.host})\n".encode())
+        self.pump = threading.Thread(target=self._pump, name=f"{name}-log", daemon=True)
+        self.pump.start()
+
+    def _ship(self, data: bytes) -> None:
+        self.sink.write.remote(self.name, data)   # in order: one caller, one sequential sink
+
+    def _pump(self) -> None:
+        fd = self.proc.stdout.fileno()
+        while True:
+            data = os.read(fd, 65536)
+            if not data:
+                return
+            self._ship(data)
+
+    def info(self) -> dict:
+        return {"pid": self.proc.pid, "node": self.node, "host": self.host, "restarted": self.restarted}
+
+    def wait(self) -> int:
+        """Block until the service exits; its exit code. A non-zero exit that no ``stop``
+        asked for ends this actor's process instead, for Ray to restart."""
+        import ray
+
+        code = self.proc.wait()
+        kill_group(self.proc.pid, signal.SIGKILL)   # what it left in its group; closes the pipe
+        self.pump.join(timeout=5.0)
+        restart = code != 0 and not self.stopping
+        try:   # the exit reaches the driver's log before this actor ends
+            ray.get(self.sink.exited.remote(self.name, self.proc.pid, code, restart), timeout=10.0)
+        except Exception:  # noqa: BLE001 - the driver is gone or slow: the restart matters more
+            pass
+        if restart:
+            os._exit(1)   # an unplanned death: Ray's restart policy re-creates this actor
+        return code
+
+    def stop(self, deadline_s: float) -> dict:
+        """SIGTERM the service's group, SIGKILL after ``deadline_s``; its exit code."""
+        self.stopping = True
+        killed = False
+        if self.proc.poll() is None:
+            kill_group(self.proc.pid, signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=deadline_s)
+            except subprocess.TimeoutExpired:
+                kill_group(self.proc.pid, signal.SIGKILL)
+                killed = True
+                self.proc.wait()
+        return {"pid": self.proc.pid, "code": self.proc.returncode, "killed": killed}
+
+
+# ----------------------------------------------------------------- the driver
+class _Placed:
+    """The driver's view of one service."""
+
+    def __init__(self, spec: ServiceSpec, options: dict):
+        self.spec = spec
+        self.options = options
+        self.handle = None
+        self.state = "placing"     # placing, running, restarting, done, failed, stopped
+        self.since = time.monotonic()
+        self.pid: int | None = None
+        self.node = self.host = None
+        self.starts = 0
+        self.last_code: int | None = None
+
+
+class RayRun:
+    """The services of one run as Ray actors; ``run()`` places them, keeps the
+    live line and the run directory's records, and shuts everything down."""
+
+    def __init__(self, ray, specs: Sequence[ServiceSpec], run_dir: str | Path, placement: RayPlacement, *,
+                 files: dict[str, str], cwd: str, out=None):
+        self.ray, self.placement = ray, placement
+        self.paths = RunDir(run_dir)
+        self.paths.logs.mkdir(parents=True, exist_ok=True)
+        self.files, self.cwd = files, cwd
+        self.out = out if out is not None else sys.stderr
+        self.services = [_Placed(s, placement.request(s.name)) for s in specs]
+        self.outcome: tuple[int, str] | None = None
+        self.signals: list[int] = []
+        self.refs: dict = {}       # pending ObjectRef -> (service, "info" | "wait")
+        self.sink = None
+        self.sink_name = f"sage-logs-{os.getpid()}-{time.time_ns()}"   # unique in this driver's namespace
+        self.driver_node = ray.get_runtime_context().get_node_id()
+
+    # ------------------------------------------------------------- records
+    def event(self, kind: str, **fields) -> None:
+        with open(self.paths.supervisor_events, "a") as f:
+            f.write(json.dumps({"t": time.time(), "event": kind, **fields}) + "\n")
+
+    def _finish(self, code: int, message: str) -> None:
+        if self.outcome is None:
+            self.outcome = (code, message)
+
+    def summary(self) -> str:
+        running = sum(p.state == "running" for p in self.services)
+        restarts = sum(max(p.starts - 1, 0) for p in self.services)
+        nodes = len({p.node for p in self.services if p.state == "running"})
+        down = [p.spec.name for p in self.services if p.state in ("placing", "restarting", "failed")]
+        text = f"procs {running}/{len(self.services)} | restarts {restarts} | nodes {nodes}"
+        return text + (" | waiting " + ",".join(down) if down else "")
+
+    def write_status(self, board: StatusBoard | None) -> None:
+        snap = {"t": time.time(), "placer": "ray",
+                "services": {p.spec.name: {"state": p.state, "pid": p.pid, "starts": p.starts,
+                                           "last_code": p.last_code, "node": p.node, "host": p.host,
+                                           "resources": p.options}
+                             for p in self.services},
+                "status": board.snapshot() if board is not None else {}}
+        atomic_write_text(self.paths.status, json.dumps(snap, indent=1, default=str))
+
+    # ------------------------------------------------------------- placing
+    def _on_driver_node(self) -> dict:
+        from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+        return {"scheduling_strategy": NodeAffinitySchedulingStrategy(self.driver_node, soft=False)}
+
+    def _create(self, p: _Placed) -> None:
+        role = role_of(p.spec.name)
+        # the router and the learner write or serve what the driver reads: on its node;
+        # actors spread over the nodes (Ray would otherwise pack them)
+        where = self._on_driver_node() if role in ("router", "learner") else \
+            {"scheduling_strategy": "SPREAD"} if role == "actor" else {}
+        cls = self.ray.remote(ServiceRunner).options(
+            max_restarts=self.placement.max_restarts, max_task_retries=0, max_concurrency=4, **p.options, **where)
+        env = {"PYTHONUNBUFFERED": "1"}
+        if os.environ.get("PYTHONPATH"):
+            env["PYTHONPATH"] = os.environ["PYTHONPATH"]
+        p.handle = cls.remote(p.spec.name, list(p.spec.argv), files=self.files, cwd=self.cwd, env=env,
+                              sink=self.sink_name, restart_delay_s=self.placement.restart_delay_s)
+        p.state, p.since = "placing", time.monotonic()
+        self._ask_info(p)
+
+    def _ask_info(self, p: _Placed) -> None:
+        self.refs[p.handle.info.remote()] = (p, "info")
+
+    def _wait_ready(self, p: _Placed) -> None:
+        """Block until ``p`` is placed and (router) accepts TCP connections."""
+        deadline = time.monotonic() + self.placement.placement_timeout_s
+        while p.state == "placing" and self.outcome is None and not self.signals:
+            if time.monotonic() > deadline:
+                self._placement_timeout(p)
+                return
+            self.poll()
+        if p.spec.ready_tcp is None or p.state != "running":
+            return
+        host, port = p.spec.ready_tcp
+        deadline = time.monotonic() + self.placement.ready_timeout_s
+        while time.monotonic() < deadline and not self.signals:
+            try:
+                with socket.create_connection((host, port), timeout=0.5):
+                    self.event("ready", service=p.spec.name, endpoint=f"{host}:{port}")
+                    return
+            except OSError:
+                time.sleep(0.05)
+        raise RuntimeError(f"{p.spec.name} did not accept connections on {host}:{port} within "
+                           f"{self.placement.ready_timeout_s} s; see {self.paths.log(p.spec.name)}")
+
+    def _placement_timeout(self, p: _Placed) -> None:
+        p.state = "failed"
+        msg = (f"giving up: Ray could not place {p.spec.name} within {self.placement.placement_timeout_s:g} s "
+               f"(it asks for {p.options}; free now: {self.ray.available_resources()})")
+        self.event("give_up", service=p.spec.name, message=msg)
+        self._finish(EXIT_GAVE_UP, msg)
+
+    def start(self) -> None:
+        self.sink = self.ray.remote(LogSink).options(name=self.sink_name, num_cpus=0, max_restarts=0,
+                                                     **self._on_driver_node()).remote(str(self.paths.logs))
+        first = [p for p in self.services if p.spec.ready_tcp is not None]   # the router: before the rest
+        for p in first:
+            self._create(p)
+            self._wait_ready(p)
+        for p in self.services:
+            if p.handle is None and self.outcome is None:
+                self._create(p)
+
+    # ------------------------------------------------------------- monitoring
+    def poll(self) -> int | None:
+        """Handle the answers that arrived: placements, (re)starts, exits; the exit
+        code once the run is over."""
+        if self.refs:
+            ready, _ = self.ray.wait(list(self.refs), num_returns=len(self.refs), timeout=self.placement.poll_s)
+        else:
+            ready = []
+            time.sleep(self.placement.poll_s)
+        for ref in ready:
+            p, kind = self.refs.pop(ref)
+            if p.state in ("stopped", "failed"):
+                continue
+            if kind == "info":
+                self._on_info(p, ref)
+            else:
+                self._on_wait(p, ref)
+        now = time.monotonic()
+        for p in self.services:
+            if p.state == "placing" and now - p.since > self.placement.placement_timeout_s:
+                self._placement_timeout(p)
+        if self.outcome is None and not any(p.spec.ends_run for p in self.services) \
+                and all(p.state == "done" for p in self.services if p.spec.stop_wave == 0):
+            self._finish(0, "all services finished")
+        return self.outcome[0] if self.outcome else None
+
+    def _on_info(self, p: _Placed, ref) -> None:
+        exc = self.ray.exceptions
+        try:
+            info = self.ray.get(ref)
+        except exc.ActorUnavailableError:      # being re-created: ask again
+            self._ask_info(p)
+            return
+        except exc.RayActorError as e:         # dead for good: restarts spent, or it could not start
+            self._gave_up(p, e)
+            return
+        if p.starts:
+            self.event("restart", service=p.spec.name, attempt=p.starts + 1)
+        p.starts += 1
+        p.state, p.pid, p.node, p.host = "running", info["pid"], info["node"], info["host"]
+        self.event("start", service=p.spec.name, pid=p.pid, attempt=p.starts, node=p.node, host=p.host,
+                   argv=p.spec.argv)
+        self.refs[p.handle.wait.remote()] = (p, "wait")
+
+    def _on_wait(self, p: _Placed, ref) -> None:
+        try:
+            code = self.ray.get(ref)
+        except self.ray.exceptions.RayActorError:
+            # the service crashed and took its Ray actor along (or the worker/node was lost)
+            last = self._last_exit(p)
+            code = last[1] if last and last[0] == p.pid else None
+            p.last_code = code
+            self.event("exit", service=p.spec.name, pid=p.pid, code=code, node=p.node)
+            p.state = "restarting"
+            self._ask_info(p)   # answered once Ray has re-created it, or raises when it will not
+            return
+        p.last_code = code
+        self.event("exit", service=p.spec.name, pid=p.pid, code=code, node=p.node)
+        p.state = "done"
+        if code == 0 and p.spec.ends_run:
+            self._finish(0, f"{p.spec.name} finished")
+
+    def _last_exit(self, p: _Placed) -> tuple[int, int] | None:
+        try:
+            return self.ray.get(self.sink.last_exit.remote(p.spec.name), timeout=10.0)
+        except Exception:  # noqa: BLE001 - the exit code is informative only
+            return None
+
+    def _gave_up(self, p: _Placed, error: BaseException) -> None:
+        p.state = "failed"
+        reason = str(error).splitlines()[0] if str(error) else type(error).__name__
+        msg = (f"giving up: {p.spec.name} is dead after {max(p.starts - 1, 0)} restart(s) "
+               f"(Ray max_restarts {self.placement.max_restarts}; last exit code {p.last_code}): {reason}; "
+               f"see {self.paths.log(p.spec.name)}")
+        self.event("give_up", service=p.spec.name, code=p.last_code, restarts=max(p.starts - 1, 0), message=msg)
+        self._finish(EXIT_GAVE_UP, msg)
+
+    # ------------------------------------------------------------- shutdown
+    def shutdown(self, reason: str) -> None:
+        """Stop the services wave by wave (router last): SIGTERM, SIGKILL after the
+        deadline (a second signal skips the wait), then kill their Ray actors."""
+        self.event("shutdown", reason=reason)
+        for wave in sorted({p.spec.stop_wave for p in self.services}):
+            group = [p for p in self.services if p.spec.stop_wave == wave and p.handle is not None]
+            stops = {}
+            for p in group:
+                if p.state in ("running", "restarting"):
+                    stops[p.handle.stop.remote(self.placement.term_deadline_s)] = p
+                    self.event("stop", service=p.spec.name, pid=p.pid, signal="SIGTERM")
+            n_signals = len(self.signals)
+            deadline = time.monotonic() + self.placement.term_deadline_s + 10.0
+            while stops and time.monotonic() < deadline and len(self.signals) == n_signals:
+                ready, _ = self.ray.wait(list(stops), num_returns=len(stops), timeout=0.2)
+                for ref in ready:
+                    p = stops.pop(ref)
+                    try:
+                        res = self.ray.get(ref)
+                    except self.ray.exceptions.RayError:
+                        continue
+                    if res["killed"]:
+                        self.event("kill", service=p.spec.name, pid=res["pid"], signal="SIGKILL")
+                    p.last_code = res["code"]
+                    self.event("exit", service=p.spec.name, pid=res["pid"], code=res["code"], node=p.node)
+            for p in group:   # the Ray actor goes too; its process, if still there, by pdeathsig
+                self.ray.kill(p.handle, no_restart=True)
+                if p.state != "failed":
+                    p.state = "stopped"
+        if self.sink is not None:
+            try:
+                self.ray.get(self.sink.close.remote(), timeout=10.0)
+            except Exception:  # noqa: BLE001 - the logs are as complete as they got
+                pass
+            self.ray.kill(self.sink, no_restart=True)
+
+    # ------------------------------------------------------------- main loop
+    def run(self, open_status=None, on_finish=None, install_signals: bool = True) -> int:
+        old = {}
+        if install_signals:
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                old[sig] = signal.signal(sig, lambda signum, _f: self.signals.append(signum))
+        board: StatusBoard | None = None
+        live = LiveLine(self.out, self.placement.status_log_period_s)
+        reason = "error"
+        try:
+            self.event("supervisor_start", placer="ray", pid=os.getpid(), driver_node=self.driver_node,
+                       services=[p.spec.name for p in self.services], config=asdict(self.placement))
+            self.start()
+            board = open_status() if open_status and self.outcome is None else None
+            last_line = time.monotonic()
+            while True:
+                if self.signals:
+                    sig = self.signals[0]
+                    self._finish(128 + sig, f"stopped by {signal.Signals(sig).name}")
+                    reason = signal.Signals(sig).name
+                    break
+                if self.outcome is not None or self.poll() is not None:
+                    reason = "finished" if self.outcome[0] == 0 else "gave_up"
+                    if self.outcome[0] == 0 and on_finish is not None:
+                        on_finish(board)
+                    break
+                if time.monotonic() - last_line >= self.placement.status_period_s:
+                    last_line = time.monotonic()
+                    if board is not None:
+                        live.show(f"{board.line()} | {self.summary()}")
+                    self.write_status(board)
+        except BaseException as exc:
+            self._finish(EXIT_GAVE_UP, f"ray driver error: {exc}")
+            self.event("error", message=str(exc))
+            raise
+        finally:
+            self.shutdown(reason)
+            self.write_status(board)
+            if board is not None:
+                board.close()
+            live.close()
+            for sig, handler in old.items():
+                signal.signal(sig, handler)
+            code, message = self.outcome if self.outcome else (0, "stopped")
+            self.event("supervisor_exit", code=code, message=message)
+            print(f"ray: {message} (exit code {code}); events in {self.paths.supervisor_events}", file=self.out)
+        return code
+
+
+def prepare(config_path: str | Path, *, actors: int | None = None, roles: Sequence[str] = ROLES,
+            actor_ids: Sequence[int] | None = None, python: str = sys.executable
+            ) -> tuple[TrainConfig, list[ServiceSpec], Path]:
+    """The child config (as ``run_supervised`` writes it, with an absolute run
+    directory so it means the same on every node) and the service specs: the
+    local router first when the config names none."""
+    cfg = TrainConfig.load(config_path)
+    if actors is not None:
+        cfg.actors = int(actors)
+    cfg.mode = "supervised"                  # one process per service
+    cfg.actor.exit_on_unhealthy = True       # an actor cut off from the shield exits; Ray restarts it
+    cfg.run_dir = str(Path(cfg.run_dir).resolve())
+    cfg.validate()
+    ids = list(actor_ids) if actor_ids is not None else list(range(cfg.actors))
+    run = RunDir(cfg.run_dir)
+    specs: list[ServiceSpec] = []
+    if not cfg.transport.connect:
+        tls = TlsFiles.from_transport(cfg.transport)
+        port = free_tcp_port()   # free on the driver's node, where the router is placed
+        certs = str(Path(tls.root_ca).resolve().parent) if tls is not None else None
+        specs.append(router_spec(port, python, tls_certs=certs, run_id=cfg.run_id))
+        cfg.transport.connect = [f"{'tls' if tls is not None else 'tcp'}/127.0.0.1:{port}"]
+        cfg.transport.mode = "client"        # everything through the router (deploy/README.md)
+    elif cfg.transport.mode != "client":
+        print(f"ray: warning: transport.mode is {cfg.transport.mode!r}; services attached to a router should use "
+              "\"client\" (deploy/README.md)", file=sys.stderr)
+    child_config = cfg.save(run.supervised_config)
+    specs += service_specs(child_config, roles, ids, python, shields=cfg.shields)
+    return cfg, specs, child_config
+
+
+def run_on_ray(config_path: str | Path, *, placement: RayPlacement | None = None, actors: int | None = None,
+               roles: Sequence[str] = ROLES, actor_ids: Sequence[int] | None = None,
+               install_signals: bool = True, out=None) -> int:
+    """Run the services of the run config at ``config_path`` on the Ray cluster of
+    ``placement.address`` until the learner's budget is reached, a signal arrives,
+    or a service is dead after its restarts. Returns the exit code (0 = finished).
+    A ``ClusterError`` before anything starts when the cluster cannot take the run."""
+    placement = placement or RayPlacement()
+    out = out if out is not None else sys.stderr
+    saved = TrainConfig.load(config_path)
+    if actors is not None:
+        saved.actors = int(actors)
+    ray = connect(placement.address, cpus_for_local(placement, service_names(saved, roles, actor_ids)))
+    cfg, specs, child_config = prepare(config_path, actors=actors, roles=roles, actor_ids=actor_ids)
+    cluster = check_cluster(ray, placement, [s.name for s in specs])
+    files = {str(child_config): Path(child_config).read_text()}
+    runner = RayRun(ray, specs, cfg.run_dir, placement, files=files, cwd=os.getcwd(), out=out)
+    print(f"ray: run {cfg.run_id} on {cluster['nodes']} node(s) ({', '.join(cluster['hosts'])}), "
+          f"{len(specs)} services ({', '.join(s.name for s in specs)}), router {cfg.transport.connect[0]}, "
+          f"run dir {cfg.run_dir}", file=out, flush=True)
+    tls = TlsFiles.from_transport(cfg.transport)
+    board = StatusBoard(cfg.run_id, stale_after_s=max(5.0, 5 * cfg.status_period_s))
+
+    def on_finish(status):
+        if status is not None:
+            status.stop_run()   # every service of the run stops, wherever it is
+
+    return runner.run(lambda: board.subscribe(cfg.transport.connect, tls=tls), on_finish,
+                      install_signals=install_signals)
