@@ -1,4 +1,4 @@
-"""K transport environments in one process (one MjModel, K MjData): the actors' env API.
+"""K transport environments in one process (one MjModel, K simulations): the actors' env API.
 
 The batch bookkeeping lives here: start/goal randomization, the graded-outcome
 variation (wider starts, payload mass, observation noise, actuation delay; see
@@ -7,21 +7,27 @@ and per-episode metrics.
 Physics is ``physics.py``; what a step means for the task (reward, success,
 drop, termination vs truncation) is ``task.py``. See docs/interfaces.md
 (common/env) for the dict returned by ``reset``/``step``.
+
+A step is vectorized over the K envs: one batched physics call, then one kernel
+call each for the snapshot, the outcome, the observations and the safety rows
+(common/env/kernels.py), so per-env Python is left only where an env's own
+random streams are drawn (episode starts, observation noise, the human).
+The kernels are reached through their modules (``observations.snapshot``,
+``task.step_outcome``, ...), which the tests swap for the numpy references.
 """
 from __future__ import annotations
 
 import numpy as np
 
+from common.env import kernels, observations, task
 from common.env.config import EnvConfig
 from common.env.geometry import WallSet, from_frame
 from common.env.layout import (CARRIER_RADIUS, CARRY_HEIGHT, FACING, GRASP_LOCAL, PAIR_REST, PAYLOAD_MASS,
                                PAYLOAD_POINTS_LOCAL)
-from common.env.observations import (OBS_DIM, STATE_DIM, global_state, observation_noise_std, observations,
-                                     snapshot)
+from common.env.observations import OBS_DIM, STATE_DIM, Snapshot, observation_noise_std
 from common.env.physics import TransportPhysics
 from common.env.scenarios import SCENARIOS, Route
 from common.env.scripted import ScriptedHuman, scripted_actions
-from common.env.task import step_outcome
 from common.spec import CARRIER_ACT_DIM, JOINT_ACT_DIM, N_CARRIERS
 
 
@@ -51,8 +57,8 @@ class BatchEnv:
         self.phys = TransportPhysics(self.spec, cfg, num_envs)
         self.max_rows = cfg.max_rows
         self.max_steps = cfg.episode_steps
-        self._safety = safety
         self.safety_cfg = safety_config(cfg)
+        self._safety_model = safety.SafetyModel(self.walls_array, self.safety_cfg, num_envs)
         seeds = np.random.SeedSequence(seed).spawn(num_envs)
         # env k's start/goal/mass (and scripted human) draws; its observation noise has its own
         # stream (a child of the same seed), so noise settings never move the starts
@@ -61,6 +67,10 @@ class BatchEnv:
         K = num_envs
         noise = observation_noise_std(cfg)
         self._obs_noise_std = noise.astype(np.float32) if cfg.randomize and noise.any() else None
+        # each env's next NOISE_BLOCK noise draws, drawn in one call of its RNG (the same stream
+        # as one call per step); _noise_used counts the draws taken from the block
+        self._noise_block = np.empty((K, self.NOISE_BLOCK, N_CARRIERS, OBS_DIM), np.float32)
+        self._noise_used = np.full(K, self.NOISE_BLOCK)
         self.payload_mass = np.full(K, PAYLOAD_MASS)
         d = cfg.action_delay_steps
         self._act_queue = np.zeros((K, d, JOINT_ACT_DIM)) if d else None   # sent, not yet executed
@@ -68,10 +78,15 @@ class BatchEnv:
         self.s_prev = np.zeros(K)
         self.s_start = np.zeros(K)
         self.goal_s = np.full(K, self.route.length)
+        self._start = np.zeros((K, 3))   # the episode's start pose (payload x, y, yaw)
+        # _draw_start's box and frame (cos, sin of the route's start heading: numpy's, as from_frame's)
+        self._start_box = np.asarray(self.spec.start_range, np.float64) * cfg.start_spread
+        self._start_frame = np.cos(self.route.heading[0]).item(), np.sin(self.route.heading[0]).item()
         self.goal_xy = np.zeros((K, 2))
         self.goal_yaw = np.zeros(K)
         self.t = np.zeros(K, dtype=np.int64)
-        self._acc = {k: np.zeros(K) for k in ("ret", "col", "margin", "tilt", "head", "height")}
+        self._acc_all = np.zeros((6, K))   # per-episode sums; _acc names its rows
+        self._acc = dict(zip(("ret", "col", "margin", "tilt", "head", "height"), self._acc_all))
         self._min_clear = np.full(K, np.inf)
         self.fixed_mask = np.zeros((K, JOINT_ACT_DIM), dtype=bool)
         self.human = None
@@ -79,86 +94,114 @@ class BatchEnv:
             self.fixed_mask[:, 3 * cfg.human_slot:3 * cfg.human_slot + 3] = True
             self.human = ScriptedHuman(cfg.human_slot, cfg, K)
         self.human_action = np.zeros((K, JOINT_ACT_DIM))
-        self.snap = None
+        self.snap = Snapshot.empty(K)   # the current state's snapshot, updated in place
+        self._all = np.arange(K)
         self._started = False
 
     # --- episode start -------------------------------------------------------------
     START_TRIES = 100   # redraws of a start closer than start_min_clearance to a wall
+    NOISE_BLOCK = 32    # observation-noise draws per env and RNG call
 
     def start_clearance(self, xy, yaw: float) -> float:
         """Formation clearance (payload boundary points, carrier discs; as ``Snapshot.clearance``)
-        of a start pose with the carriers on their grasps."""
+        of a start pose with the carriers on their grasps (a kernel; :meth:`start_clearance_reference`)."""
+        return float(kernels.pose_clearance(float(xy[0]), float(xy[1]), float(yaw), PAYLOAD_POINTS_LOCAL,
+                                            GRASP_LOCAL, self.walls.table, CARRIER_RADIUS))
+
+    def start_clearance_reference(self, xy, yaw: float) -> float:
+        """Numpy :meth:`start_clearance`."""
         pts = xy + from_frame(PAYLOAD_POINTS_LOCAL, yaw)
         cxy = xy + from_frame(GRASP_LOCAL, yaw)
-        return float(min(self.walls.signed_distance(pts).min(),
-                         self.walls.signed_distance(cxy).min() - CARRIER_RADIUS))
+        return float(min(self.walls.signed_distance_reference(pts).min(),
+                         self.walls.signed_distance_reference(cxy).min() - CARRIER_RADIUS))
 
     def _draw_start(self, rng):
         """Start pose uniform in the scenario box x start_spread, redrawn until its clearance
         is >= start_min_clearance (the nominal start, 0.25 m clear in every scenario, after
         START_TRIES misses)."""
-        cfg, route = self.cfg, self.route
-        xy0, yaw0 = route.points[0].copy(), float(route.heading[0])
-        box = np.asarray(self.spec.start_range, np.float64) * cfg.start_spread
+        (x0, y0), yaw0 = self.route.points[0], float(self.route.heading[0])
+        c, s = self._start_frame   # from_frame(off, yaw0) in scalars, the same arithmetic
         for _ in range(self.START_TRIES):
-            off = rng.uniform(-1.0, 1.0, 3) * box
-            xy, yaw = xy0 + from_frame(off[:2], yaw0), yaw0 + off[2]
-            if self.start_clearance(xy, yaw) >= cfg.start_min_clearance:
+            ox, oy, oyaw = (rng.uniform(-1.0, 1.0, 3) * self._start_box).tolist()
+            xy, yaw = (x0 + (c * ox - s * oy), y0 + (s * ox + c * oy)), yaw0 + oyaw
+            if self.start_clearance(xy, yaw) >= self.cfg.start_min_clearance:
                 return xy, yaw
-        return xy0, yaw0
+        return (x0, y0), yaw0
 
-    def _reset_env(self, k: int):
-        rng, spec, route, cfg = self.rngs[k], self.spec, self.route, self.cfg
-        xy, yaw = route.points[0].copy(), float(route.heading[0])
+    def _draw_episode(self, k: int):
+        """Env k's episode draws from its RNG (start pose, goal arc length, payload mass), into
+        ``_start[k]``, ``goal_s[k]``, ``payload_mass[k]``."""
+        rng, route, cfg = self.rngs[k], self.route, self.cfg
+        xy, yaw = route.points[0], float(route.heading[0])
         goal_s = route.length
         mass = PAYLOAD_MASS
         if cfg.randomize:
             xy, yaw = self._draw_start(rng)
-            goal_s -= rng.uniform(0.0, spec.goal_range)
+            goal_s -= rng.uniform(0.0, self.spec.goal_range)
             mass = float(rng.uniform(*cfg.payload_mass_range))
+        self._start[k] = xy[0], xy[1], yaw
+        self.goal_s[k] = goal_s
         self.payload_mass[k] = mass
-        self.phys.set_payload_mass(k, mass)
+
+    def _reset_envs(self, envs):
+        """Start new episodes in envs ``envs`` (sorted indices) and snapshot them."""
+        for k in envs:
+            self._draw_episode(k)
+            self.phys.set_payload_mass(k, self.payload_mass[k])
         if self._act_queue is not None:
-            self._act_queue[k] = 0.0
-        gxy, gyaw = route.pose(goal_s)
-        self.goal_s[k], self.goal_xy[k], self.goal_yaw[k] = goal_s, gxy, gyaw
-        carriers = np.zeros((N_CARRIERS, 3))
-        carriers[:, :2] = xy + from_frame(GRASP_LOCAL, yaw)
-        carriers[:, 2] = yaw + FACING
-        self.phys.reset(k, xy, yaw, carriers)
-        self.s_prev[k] = route.project(xy[None], np.zeros(1))[0]
-        self.s_start[k] = self.s_prev[k]
-        self.t[k] = 0
-        for a in self._acc.values():
-            a[k] = 0.0
-        self._min_clear[k] = np.inf
+            self._act_queue[envs] = 0.0
+        carriers = self._place_episodes(envs)
+        start = self._start[envs]
+        self.phys.reset(envs, start[:, :2], start[:, 2], carriers)
+        s = self.route.project(start[:, :2], np.zeros(len(envs)))
+        self.s_prev[envs] = s
+        self.s_start[envs] = s
+        self.t[envs] = 0
+        self._acc_all[:, envs] = 0.0
+        self._min_clear[envs] = np.inf
+        observations.snapshot(self.phys, self.route, self.walls, self.s_prev, self.goal_s, self.cfg, self.snap, envs)
+
+    def _place_episodes(self, envs):
+        """Goal poses (``goal_xy``, ``goal_yaw`` of envs) of the drawn episodes and their carrier
+        poses [n,3,3] on the grasps of the start pose, in one kernel call;
+        :meth:`_place_episodes_reference` is the numpy computation."""
+        route = self.route
+        carriers = np.empty((len(envs), N_CARRIERS, 3))
+        kernels.place_episodes(envs, self._start, self.goal_s, route.points, route.heading, float(route.ds),
+                               GRASP_LOCAL, FACING, self.goal_xy, self.goal_yaw, carriers)
+        return carriers
+
+    def _place_episodes_reference(self, envs):
+        """Numpy :meth:`_place_episodes`."""
+        start = self._start[envs]
+        xy, yaw = start[:, :2], start[:, 2]
+        self.goal_xy[envs], self.goal_yaw[envs] = self.route.pose(self.goal_s[envs])
+        carriers = np.empty((len(envs), N_CARRIERS, 3))
+        carriers[..., :2] = xy[:, None] + from_frame(GRASP_LOCAL, yaw[:, None])
+        carriers[..., 2] = yaw[:, None] + FACING
+        return carriers
 
     def reset(self) -> dict:
-        for k in range(self.K):
-            self._reset_env(k)
+        self._reset_envs(self._all)
         self._started = True
-        out = self._observe(reset_human=np.ones(self.K, dtype=bool))
-        return out
+        return self._observe(reset_human=np.ones(self.K, dtype=bool))
 
     # --- observation, rows, human --------------------------------------------------
-    def _progress(self, s, idx=slice(None)):
-        return np.clip((s - self.s_start[idx]) / np.maximum(self.goal_s[idx] - self.s_start[idx], 1e-6), 0.0, 1.0)
+    def _progress(self, s):
+        """Route progress [K] in [0, 1] of arc lengths s [K] from the episodes' start to goal."""
+        return np.minimum(np.maximum((s - self.s_start) / np.maximum(self.goal_s - self.s_start, 1e-6), 0.0), 1.0)
 
-    def _observe(self, reset_human=None, snap=None) -> dict:
-        cfg = self.cfg
-        if snap is None:
-            snap = snapshot(self.phys, self.route, self.walls, self.s_prev, self.goal_s, cfg)
-        self.snap = snap
+    def _observe(self, reset_human=None) -> dict:
+        """The step's output for the current snapshot: observations (noisy), state, rows, human."""
+        cfg, snap, K = self.cfg, self.snap, self.K
         progress = self._progress(snap.s)
-        time_left = 1.0 - self.t / self.max_steps
-        obs = observations(snap, self.walls, self.goal_xy, self.goal_yaw, progress, time_left, cfg)
-        state = global_state(snap, obs, self.goal_xy, self.goal_yaw, progress, time_left, cfg.human_slot, cfg)
-        obs = self._noisy(obs, range(self.K))   # the trees' view; state and rows stay true
-        geom = self._safety.SafetyGeometry(
-            carrier_xy=snap.cxy, carrier_yaw=snap.cyaw, payload_xy=snap.pxy, payload_yaw=snap.pyaw,
-            payload_points_local=PAYLOAD_POINTS_LOCAL, grasp_local=GRASP_LOCAL, pair_rest=PAIR_REST)
-        C, c, row_mask, _ = self._safety.build_rows(geom, self.walls_array, self.safety_cfg)
-        self.human_action[:] = 0.0
+        obs = np.empty((K, N_CARRIERS, OBS_DIM), np.float32)
+        state = np.empty((K, STATE_DIM), np.float32)
+        observations.observe(snap, self.walls, self.goal_xy, self.goal_yaw, progress, 1.0 - self.t / self.max_steps,
+                             cfg, self._all, obs, state)
+        self._add_noise(obs, self._all)   # the trees' view; state and rows stay true
+        C, c, row_mask, *_ = self._safety_model.rows(snap.cxy, snap.cyaw, snap.pxy, snap.pyaw, PAYLOAD_POINTS_LOCAL,
+                                                     GRASP_LOCAL, PAIR_REST)
         if self.human is not None:
             intended = scripted_actions(snap, cfg)
             if reset_human is not None:
@@ -167,17 +210,31 @@ class BatchEnv:
             h = cfg.human_slot
             self.human_action[:, 3 * h:3 * h + 3] = self.human.act(intended, self.rngs)
         return {
-            "obs": obs, "state": state, "C": np.asarray(C, np.float64), "c": np.asarray(c, np.float64),
-            "row_mask": np.asarray(row_mask, bool), "fixed_mask": self.fixed_mask.copy(),
+            "obs": obs, "state": state, "C": C, "c": c, "row_mask": row_mask, "fixed_mask": self.fixed_mask.copy(),
             "human_action": self.human_action.copy(), "progress": progress,
         }
 
-    def _noisy(self, obs, envs):
-        """Observations [n,3,OBS_DIM] of envs ``envs`` plus their observation noise (if any)."""
-        if self._obs_noise_std is None:
-            return obs
-        noise = np.stack([self.noise_rngs[k].standard_normal((N_CARRIERS, OBS_DIM), np.float32) for k in envs])
-        return obs + noise * self._obs_noise_std
+    def _add_noise(self, obs, envs):
+        """Add envs' next observation noise draws (if any; each env's own stream) to rows ``envs``
+        of obs [K,3,OBS_DIM] (a kernel; :meth:`_add_noise_reference`)."""
+        if self._obs_noise_std is not None:
+            self._refill_noise(envs)
+            kernels.add_noise(envs, self._noise_block, self._noise_used, self._obs_noise_std, obs)
+
+    def _add_noise_reference(self, obs, envs):
+        """Numpy :meth:`_add_noise`."""
+        if self._obs_noise_std is not None:
+            self._refill_noise(envs)
+            used = self._noise_used
+            obs[envs] += self._noise_block[envs, used[envs]] * self._obs_noise_std
+            used[envs] += 1
+
+    def _refill_noise(self, envs):
+        """Draw the next NOISE_BLOCK noise draws of envs whose block is used up."""
+        used = self._noise_used
+        for k in envs[used[envs] == self.NOISE_BLOCK]:
+            self.noise_rngs[k].standard_normal(dtype=np.float32, out=self._noise_block[k])
+            used[k] = 0
 
     def scripted_actions(self) -> np.ndarray:
         """Reference controller's actions [K,9] for the current state."""
@@ -188,9 +245,26 @@ class BatchEnv:
         carrier disc + margin and payload points + margin vs walls, and the formation band
         under ``safety_rows="grasp"``) is below 0 at the snapshot's state. Reuses the
         snapshot's wall distances; a superset of contact (a disc or board in
-        contact has a centre/boundary point within its margin of the wall)."""
-        h_min = self._safety.spec_barrier_min(snap.car_dist, snap.pay_dist, snap.cxy, PAIR_REST, self.safety_cfg)
-        return h_min < 0.0
+        contact has a centre/boundary point within its margin of the wall); safety.spec_barrier_min."""
+        return self._safety_model.barrier_min(snap.car_dist, snap.pay_dist, snap.cxy, PAIR_REST) < 0.0
+
+    def _accumulate(self, o, margin_violation):
+        """Add this step to the episode sums (``_acc``, ``_min_clear``), in one kernel call;
+        :meth:`_accumulate_reference` is the numpy computation."""
+        snap = self.snap
+        kernels.accumulate_episodes(self._acc_all, self._min_clear, o.reward, o.collision, margin_violation,
+                                    snap.tilt, o.heading_error, snap.pz, snap.clearance, CARRY_HEIGHT)
+
+    def _accumulate_reference(self, o, margin_violation):
+        """Numpy :meth:`_accumulate`."""
+        acc, snap = self._acc, self.snap
+        acc["ret"] += o.reward
+        acc["col"] += o.collision
+        acc["margin"] += margin_violation
+        acc["tilt"] += np.degrees(snap.tilt)
+        acc["head"] += o.heading_error
+        acc["height"] += np.abs(snap.pz - CARRY_HEIGHT)
+        np.minimum(self._min_clear, snap.clearance, out=self._min_clear)
 
     # --- step ------------------------------------------------------------------------
     def step(self, actions) -> dict:
@@ -200,9 +274,9 @@ class BatchEnv:
         a = np.asarray(actions, dtype=np.float64)
         if a.shape != (self.K, JOINT_ACT_DIM):
             raise ValueError(f"actions must have shape {(self.K, JOINT_ACT_DIM)}, got {a.shape}")
-        if not np.all(np.isfinite(a)):
+        if not np.isfinite(a).all():
             raise ValueError("actions contain NaN or Inf")
-        a = np.clip(a, -1.0, 1.0)
+        a = np.minimum(np.maximum(a, -1.0), 1.0)
         if self._act_queue is not None:   # actuation delay: execute what was sent d steps ago
             sent, a = a, self._act_queue[:, 0].copy()
             self._act_queue[:, :-1] = self._act_queue[:, 1:]
@@ -210,28 +284,20 @@ class BatchEnv:
         if self.human is not None:
             a = np.where(self.fixed_mask, self.human_action, a)
         self.executed_action[:] = a
-        s_old = self.s_prev.copy()
         self.phys.step(a)
-        snap = snapshot(self.phys, self.route, self.walls, self.s_prev, self.goal_s, cfg)
-        self.s_prev = snap.s.copy()
+        snap = self.snap
+        observations.snapshot(self.phys, self.route, self.walls, self.s_prev, self.goal_s, cfg, snap, self._all)
         self.t += 1
-
-        o = step_outcome(snap, s_old, self.t, self.max_steps, self.goal_xy, self.goal_yaw, cfg)
+        o = task.step_outcome(snap, self.s_prev, self.t, self.max_steps, self.goal_xy, self.goal_yaw, cfg)
+        self.s_prev[:] = snap.s
         drop, success, terminated, truncated = o.drop, o.success, o.terminated, o.truncated
-        reward, collision, heading_err = o.reward, o.collision, o.heading_error
-        for k in np.flatnonzero(drop):
-            self.phys.release(k)
+        reward, collision = o.reward, o.collision
+        if drop.any():
+            self.phys.release(np.flatnonzero(drop))
 
         margin_violation = self._margin_violation(snap)
 
-        acc = self._acc
-        acc["ret"] += reward
-        acc["col"] += collision
-        acc["margin"] += margin_violation
-        acc["tilt"] += np.degrees(snap.tilt)
-        acc["head"] += heading_err
-        acc["height"] += np.abs(snap.pz - CARRY_HEIGHT)
-        self._min_clear = np.minimum(self._min_clear, snap.clearance)
+        self._accumulate(o, margin_violation)
 
         done = terminated | truncated
         K = self.K
@@ -240,15 +306,13 @@ class BatchEnv:
         episodes = []
         ended = np.flatnonzero(done)
         if len(ended):
-            # final observations of the ended envs only, then reset them and patch the snapshot
-            sub = snap.take(ended)
-            progress = self._progress(sub.s, ended)
-            time_left = 1.0 - self.t[ended] / self.max_steps
-            obs_end = observations(sub, self.walls, self.goal_xy[ended], self.goal_yaw[ended], progress, time_left, cfg)
-            final_obs[ended] = self._noisy(obs_end, ended)
-            final_state[ended] = global_state(sub, obs_end, self.goal_xy[ended], self.goal_yaw[ended], progress,
-                                              time_left, cfg.human_slot, cfg)
-            for j, k in enumerate(ended):
+            # final observations of the ended envs, then new episodes there
+            progress = self._progress(snap.s)
+            observations.observe(snap, self.walls, self.goal_xy, self.goal_yaw, progress,
+                                 1.0 - self.t / self.max_steps, cfg, ended, final_obs, final_state)
+            self._add_noise(final_obs, ended)
+            acc = self._acc
+            for k in ended:
                 n = int(self.t[k])
                 episodes.append({
                     "scenario": cfg.scenario, "success": bool(success[k]), "drop": bool(drop[k]),
@@ -259,13 +323,11 @@ class BatchEnv:
                     "completion_time": n * cfg.control_dt if success[k] else float("nan"),
                     "tilt": acc["tilt"][k] / n, "heading_error": acc["head"][k] / n,
                     "height_error": acc["height"][k] / n, "min_clearance": float(self._min_clear[k]),
-                    "progress_per_step": float(progress[j]) / n, "final_progress": float(progress[j]),
+                    "progress_per_step": float(progress[k]) / n, "final_progress": float(progress[k]),
                 })
-                self._reset_env(k)
-            snap.put(ended, snapshot(self.phys, self.route, self.walls, self.s_prev[ended], self.goal_s[ended],
-                                     cfg, idx=ended))
-        out = self._observe(reset_human=done, snap=snap)
-        out.update(reward=reward, terminated=terminated, truncated=truncated, collision=collision.copy(),
+            self._reset_envs(ended)
+        out = self._observe(reset_human=done)
+        out.update(reward=reward, terminated=terminated, truncated=truncated, collision=collision,
                    margin_violation=margin_violation, drop=drop, success=success, final_obs=final_obs,
                    final_state=final_state, episodes=episodes)
         return out

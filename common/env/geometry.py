@@ -35,6 +35,15 @@ def from_frame(vec, yaw):
     return out
 
 
+def wall_table(walls) -> np.ndarray:
+    """The kernels' layout of boxes ``[W,5]``: ``[6,W]`` rows centre x, centre y, half-size x,
+    half-size y, cos and sin of the yaw (one contiguous row per quantity, so the kernels'
+    loops over walls vectorize)."""
+    walls = np.asarray(walls, dtype=np.float64)
+    return np.ascontiguousarray(np.concatenate([walls[..., :4], np.cos(walls[..., 4:5]), np.sin(walls[..., 4:5])],
+                                               axis=-1).swapaxes(-1, -2))
+
+
 class WallSet:
     """Precomputed wall boxes for distance and ray queries."""
 
@@ -49,6 +58,7 @@ class WallSet:
         self.half = walls[:, 2:4]
         self.cos = np.cos(walls[:, 4])
         self.sin = np.sin(walls[:, 4])
+        self.table = wall_table(walls)
 
     def _local(self, pts):
         d = pts[..., None, :] - self.center  # [...,W,2]
@@ -67,7 +77,7 @@ class WallSet:
 
         flat, lead = self._flat(pts)
         out = np.empty((len(flat), len(self.walls)))
-        signed_distances(flat, self.walls, self.cos, self.sin, out)
+        signed_distances(flat, self.table, out)
         return out.reshape(lead + (len(self.walls),))
 
     def nearest(self, pts):
@@ -76,7 +86,7 @@ class WallSet:
 
         flat, lead = self._flat(pts)
         dist, vec = np.empty(len(flat)), np.empty((len(flat), 2))
-        nearest_walls(flat, self.walls, self.cos, self.sin, dist, vec)
+        nearest_walls(flat, self.table, dist, vec)
         return dist.reshape(lead), vec.reshape(lead + (2,))
 
     def ray_distance(self, origin, direction, max_dist: float):
@@ -87,7 +97,7 @@ class WallSet:
         flat_o, lead = self._flat(origin)
         flat_d, _ = self._flat(direction)
         out = np.empty(len(flat_o))
-        ray_distances(flat_o, flat_d, self.walls, self.cos, self.sin, float(max_dist), out)
+        ray_distances(flat_o, flat_d, self.table, float(max_dist), out)
         return out.reshape(lead)
 
     def signed_distance_reference(self, pts):

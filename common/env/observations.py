@@ -6,14 +6,19 @@ carrier's own frame (x forward, y left) and scaled to O(1); names are stable
 """
 from __future__ import annotations
 
+import functools
+import inspect
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from common.env import kernels
 from common.env.config import EnvConfig
 from common.env.geometry import WallSet, from_frame, to_frame, wrap
 from common.env.layout import CARRIER_RADIUS, CARRY_HEIGHT, FACING, GRASP_LOCAL, PAYLOAD_POINTS_LOCAL
 from common.env.physics import TransportPhysics, quat_to_yaw_tilt
+from common.env.scenarios import Route
 from common.spec import N_CARRIERS
 
 OBS_FEATURE_NAMES: list[str] = [
@@ -37,6 +42,9 @@ OBS_FEATURE_NAMES: list[str] = [
 OBS_DIM = len(OBS_FEATURE_NAMES)
 RAY_MAX = 2.0
 _RAY_ANGLES = np.array([0.0, np.pi / 2, np.pi, -np.pi / 2])
+# Route.project's search window (its defaults), for the snapshot kernel's inlined projection
+_PROJECT_BACK, _PROJECT_AHEAD = (inspect.signature(Route.project).parameters[name].default
+                                 for name in ("back", "ahead"))
 
 
 def feature_units(cfg: EnvConfig) -> dict[str, tuple[float, str]]:
@@ -117,6 +125,16 @@ class Snapshot:
     pay_vec: np.ndarray     # [K,P,2] vector from each payload boundary point to its nearest wall point
     car_dist: np.ndarray    # [K,3] signed distance of each carrier centre to the nearest wall
 
+    @classmethod
+    def empty(cls, K: int) -> Snapshot:
+        """A snapshot of K envs to fill (``snapshot`` writes it in place)."""
+        P, n = len(PAYLOAD_POINTS_LOCAL), N_CARRIERS
+        return cls(cxy=np.zeros((K, n, 2)), cyaw=np.zeros((K, n)), cvel=np.zeros((K, n, 3)), pxy=np.zeros((K, 2)),
+                   pz=np.zeros(K), pyaw=np.zeros(K), tilt=np.zeros(K), pvel=np.zeros((K, 6)),
+                   strain=np.zeros((K, n)), s=np.zeros(K), look_xy=np.zeros((K, 2)), look_yaw=np.zeros(K),
+                   route_yaw=np.zeros(K), contact=np.zeros(K, dtype=bool), clearance=np.zeros(K),
+                   pay_dist=np.zeros((K, P)), pay_vec=np.zeros((K, P, 2)), car_dist=np.zeros((K, n)))
+
     def take(self, idx) -> "Snapshot":
         return Snapshot(**{name: getattr(self, name)[idx] for name in self.__dataclass_fields__})
 
@@ -126,27 +144,47 @@ class Snapshot:
             getattr(self, name)[idx] = getattr(other, name)
 
 
-def snapshot(phys: TransportPhysics, route, walls: WallSet, s_prev, goal_s, cfg: EnvConfig, idx=None) -> Snapshot:
-    """Snapshot of all envs, or of envs ``idx`` only (then s_prev, goal_s are for those envs)."""
-    sel = slice(None) if idx is None else idx
-    cp = phys.carrier_pose[sel]
-    pos = phys.payload_pos[sel]
-    yaw, tilt = quat_to_yaw_tilt(phys.payload_quat[sel])
+def snapshot(phys: TransportPhysics, route: Route, walls: WallSet, s_prev, goal_s, cfg: EnvConfig, out: Snapshot,
+             envs):
+    """Fill rows ``envs`` (sorted indices) of ``out`` with the snapshot of those envs (``s_prev``,
+    ``goal_s`` [K]: previous route projections and goal arc lengths), in one kernel call;
+    :func:`snapshot_reference` is the numpy computation."""
+    kernels.snapshot_rows(
+        envs, phys.qpos, phys.qvel, phys.contact, phys.carrier_qadr, phys.carrier_vadr, phys.payload_qadr,
+        phys.payload_vadr, route.points, route.s, route.heading, float(route.ds), _PROJECT_BACK,
+        _project_width(route.ds), s_prev, goal_s, float(cfg.lookahead), walls.table, PAYLOAD_POINTS_LOCAL,
+        GRASP_LOCAL, CARRY_HEIGHT, CARRIER_RADIUS, out.cxy, out.cyaw, out.cvel, out.pxy, out.pz, out.pyaw, out.tilt,
+        out.pvel, out.strain, out.s, out.look_xy, out.look_yaw, out.route_yaw, out.contact, out.clearance,
+        out.pay_dist, out.pay_vec, out.car_dist)
+
+
+@functools.cache
+def _project_width(ds: float) -> int:
+    """Samples in Route.project's search window (as it computes it)."""
+    return math.ceil((_PROJECT_BACK + _PROJECT_AHEAD) / ds) + 1
+
+
+def snapshot_reference(phys: TransportPhysics, route, walls: WallSet, s_prev, goal_s, cfg: EnvConfig, out: Snapshot,
+                       envs):
+    """Numpy :func:`snapshot` (with the numpy references of the geometry queries)."""
+    cp = phys.carrier_pose[envs]
+    pos = phys.payload_pos[envs]
+    yaw, tilt = quat_to_yaw_tilt(phys.payload_quat[envs])
     pxy = pos[:, :2].copy()
-    s = route.project(pxy, s_prev)
-    s_look = np.minimum(s + cfg.lookahead, goal_s)
+    s = route.project_reference(pxy, s_prev[envs])
+    s_look = np.minimum(s + cfg.lookahead, goal_s[envs])
     look_xy, look_yaw = route.pose(s_look)
     _, route_yaw = route.pose(s)
     pts = pxy[:, None, :] + from_frame(PAYLOAD_POINTS_LOCAL[None], yaw[:, None])
-    pay_dist, pay_vec = walls.nearest(pts)
-    car_dist = np.min(walls.signed_distance(cp[..., :2]), axis=-1, initial=np.inf)
+    pay_dist, pay_vec = walls.nearest_reference(pts)
+    car_dist = np.min(walls.signed_distance_reference(cp[..., :2]), axis=-1, initial=np.inf)
     d_car = car_dist.min(axis=-1) - CARRIER_RADIUS
-    return Snapshot(
-        cxy=cp[..., :2].copy(), cyaw=cp[..., 2].copy(), cvel=phys.carrier_vel[sel], pxy=pxy, pz=pos[:, 2].copy(),
-        pyaw=yaw, tilt=tilt, pvel=phys.payload_vel[sel], strain=phys.grasp_strain()[sel], s=s,
-        look_xy=look_xy, look_yaw=look_yaw, route_yaw=route_yaw, contact=phys.contact[sel].copy(),
+    out.put(envs, Snapshot(
+        cxy=cp[..., :2].copy(), cyaw=cp[..., 2].copy(), cvel=phys.carrier_vel[envs], pxy=pxy, pz=pos[:, 2].copy(),
+        pyaw=yaw, tilt=tilt, pvel=phys.payload_vel[envs], strain=phys.grasp_strain_reference()[envs], s=s,
+        look_xy=look_xy, look_yaw=look_yaw, route_yaw=route_yaw, contact=phys.contact[envs].copy(),
         clearance=np.minimum(pay_dist.min(axis=1), d_car), pay_dist=pay_dist, pay_vec=pay_vec, car_dist=car_dist,
-    )
+    ))
 
 
 def slot_targets(snap: Snapshot):
@@ -156,8 +194,32 @@ def slot_targets(snap: Snapshot):
     return slot, snap.look_yaw[:, None] + FACING
 
 
-def observations(snap: Snapshot, walls: WallSet, goal_xy, goal_yaw, progress, time_left, cfg: EnvConfig):
-    """Per-carrier observations [K,3,OBS_DIM] float32 (order of OBS_FEATURE_NAMES)."""
+def observe(snap: Snapshot, walls: WallSet, goal_xy, goal_yaw, progress, time_left, cfg: EnvConfig, envs, obs, state):
+    """Rows ``envs`` of the per-carrier observations ``obs [K,3,OBS_DIM]`` (order of
+    OBS_FEATURE_NAMES) and the critic's state ``state [K,STATE_DIM]`` (both float32, noise-free),
+    in one kernel call; ``goal_*``, ``progress``, ``time_left`` are [K]. :func:`observe_reference`
+    is the numpy computation."""
+    human = -1 if cfg.human_slot is None else int(cfg.human_slot)
+    kernels.observe_rows(
+        envs, snap.cxy, snap.cyaw, snap.cvel, snap.pxy, snap.pz, snap.pyaw, snap.tilt, snap.pvel, snap.strain,
+        snap.look_xy, snap.look_yaw, snap.clearance, snap.pay_dist, snap.pay_vec, goal_xy, goal_yaw, progress,
+        time_left, human, walls.table, GRASP_LOCAL, FACING, _RAY_ANGLES, cfg.max_step_xy / cfg.control_dt,
+        cfg.max_step_yaw / cfg.control_dt, float(cfg.lookahead), float(cfg.drop_strain), CARRIER_RADIUS, RAY_MAX,
+        CARRY_HEIGHT, obs, state)
+
+
+def observe_reference(snap: Snapshot, walls: WallSet, goal_xy, goal_yaw, progress, time_left, cfg: EnvConfig, envs,
+                      obs, state):
+    """Numpy :func:`observe`."""
+    sub = snap.take(envs)
+    o = observations_reference(sub, walls, goal_xy[envs], goal_yaw[envs], progress[envs], time_left[envs], cfg)
+    obs[envs] = o
+    state[envs] = global_state_reference(sub, o, goal_xy[envs], goal_yaw[envs], progress[envs], time_left[envs],
+                                         cfg.human_slot, cfg)
+
+
+def observations_reference(snap: Snapshot, walls: WallSet, goal_xy, goal_yaw, progress, time_left, cfg: EnvConfig):
+    """Per-carrier observations [K,3,OBS_DIM] float32 (order of OBS_FEATURE_NAMES) of a snapshot of K envs."""
     K = len(snap.pxy)
     cyaw = snap.cyaw
     out = np.empty((K, N_CARRIERS, OBS_DIM), dtype=np.float32)
@@ -198,7 +260,7 @@ def observations(snap: Snapshot, walls: WallSet, goal_xy, goal_yaw, progress, ti
     ray_yaw = cyaw[..., None] + _RAY_ANGLES                                  # [K,3,4]
     dirs = np.stack([np.cos(ray_yaw), np.sin(ray_yaw)], -1)
     origin = np.broadcast_to(snap.cxy[:, :, None, :], dirs.shape)
-    ray = walls.ray_distance(origin, dirs, RAY_MAX + CARRIER_RADIUS) - CARRIER_RADIUS
+    ray = walls.ray_distance_reference(origin, dirs, RAY_MAX + CARRIER_RADIUS) - CARRIER_RADIUS
     put(np.clip(ray, -CARRIER_RADIUS, RAY_MAX) / RAY_MAX)
     d, vec = snap.pay_dist, snap.pay_vec                                      # [K,P], [K,P,2]
     p = np.argmin(d, axis=1)
@@ -214,8 +276,9 @@ def observations(snap: Snapshot, walls: WallSet, goal_xy, goal_yaw, progress, ti
 STATE_DIM = 4 + 3 + 2 + 6 + 3 + 9 + 2 + 1 + 2 + 1 + 1 + 3 + 1 + 12 + 1 + 3
 
 
-def global_state(snap: Snapshot, obs, goal_xy, goal_yaw, progress, time_left, human_slot, cfg: EnvConfig):
-    """Centralized-critic state [K,STATE_DIM] float32: the team's situation in the payload frame."""
+def global_state_reference(snap: Snapshot, obs, goal_xy, goal_yaw, progress, time_left, human_slot, cfg: EnvConfig):
+    """Centralized-critic state [K,STATE_DIM] float32 of a snapshot of K envs: the team's situation
+    in the payload frame (``obs``: their noise-free observations)."""
     K = len(snap.pxy)
     v_scale = cfg.max_step_xy / cfg.control_dt
     w_scale = cfg.max_step_yaw / cfg.control_dt

@@ -6,14 +6,26 @@ actuators with velocity feedback on slide x, slide y, hinge yaw) to
 ``target_i + [R(psi_i) [dx, dy] * max_step_xy, dpsi * max_step_yaw]`` (psi_i the
 measured yaw; the target stays within a leash of the measured pose), and ``substeps``
 physics steps are run. The tracker is stiff: inconsistent commands strain the grasps.
+
+The K simulations are one ``mujoco.batch.Batch`` (MuJoCo 4) run on the calling thread:
+one C call steps all K, and their state is read and written in place through live
+``[K, ...]`` arrays (``qpos``, ``qvel``, the tracker targets), so a step has no per-env
+Python; results are bit-identical to stepping one MjData per env. Wall contact is read
+from the batch too: the MJCF's contact filter lets every contact involve a wall or the
+floor (checked when the model is built), so an env touches a wall iff it has more
+contacts than a contact sensor on the floor counts (the sensor, added here, does not
+change the dynamics).
 """
 from __future__ import annotations
 
 import copy
+from collections.abc import Sequence
 
 import mujoco
+import mujoco.batch
 import numpy as np
 
+from common.env import kernels
 from common.env.config import EnvConfig
 from common.env.layout import CARRY_HEIGHT, GRASP_LOCAL, PAYLOAD_MASS
 from common.env.mjcf import build_mjcf
@@ -37,15 +49,97 @@ def quat_rotate(quat, v):
     return v + w * t + np.cross(u, t)
 
 
+def compile_model(xml: str) -> mujoco.MjModel:
+    """The MJCF's model plus one contact sensor counting the floor's contacts (``sensordata[0]``).
+
+    Raises if some pair of geoms could collide without a wall (``wall*``) or the floor in it,
+    since ``wall contacts = ncon - floor contacts`` then would not hold.
+    """
+    spec = mujoco.MjSpec.from_string(xml)
+    spec.add_sensor(type=mujoco.mjtSensor.mjSENS_CONTACT, objtype=mujoco.mjtObj.mjOBJ_GEOM, objname="floor",
+                    intprm=[1, 0, 1])   # data="found": the number of matching contacts
+    m = spec.compile()
+    names = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, g) or "" for g in range(m.ngeom)]
+    wall_or_floor = [name.startswith("wall") or name == "floor" for name in names]
+    for g1 in range(m.ngeom):
+        for g2 in range(g1 + 1, m.ngeom):
+            collide = (m.geom_contype[g1] & m.geom_conaffinity[g2]) or (m.geom_contype[g2] & m.geom_conaffinity[g1])
+            if collide and m.geom_bodyid[g1] != m.geom_bodyid[g2] and not (wall_or_floor[g1] or wall_or_floor[g2]):
+                raise ValueError(f"geoms {names[g1]!r} and {names[g2]!r} may collide: wall contact "
+                                 "would be miscounted")
+    if m.npair or m.nexclude:
+        raise ValueError("explicit contact pairs/excludes are not supported by the wall-contact count")
+    return m
+
+
+def set_model_payload_mass(m: mujoco.MjModel, nominal: mujoco.MjModel, body: int, mass: float,
+                           scratch: mujoco.MjData):
+    """Make ``m``, a copy of the ``nominal`` model, the model compiled with a payload (body
+    ``body``) of ``mass`` kg: its mass and inertia scaled (uniform density), the derived constants
+    (``mj_setConst``, with ``scratch`` as its workspace) and model statistics recomputed."""
+    m.body_mass[body] = mass
+    m.body_inertia[body] = nominal.body_inertia[body] * (mass / PAYLOAD_MASS)
+    mujoco.mj_setConst(m, scratch)
+    # the compiler's model statistics (mj_setConst leaves them; the solver scales its
+    # tolerance with meaninertia): mean body mass and mean diagonal inertia at qpos0
+    masses, dof_m0, stat = m.body_mass, m.dof_M0, m.stat
+    stat.meanmass = float(np.add.reduce(masses[1:]) / (len(masses) - 1))   # = .mean(), without its overhead
+    stat.meaninertia = float(np.add.reduce(dof_m0) / len(dof_m0))
+
+
+def tracker_targets_reference(carrier_pose, ctrl, actions, cfg: EnvConfig) -> np.ndarray:
+    """New tracker targets [K,9] from the measured carrier poses [K,3,3], the current targets
+    ``ctrl`` [K,9] and stacked actions [K,9] (carrier-frame, in [-1,1]); the numpy reference of
+    the kernel ``TransportPhysics.targets`` runs.
+
+    The target integrates the commanded displacements (so a stiff tracker holds the
+    commanded formation and inconsistent commands strain the grasps) but is kept
+    within ``target_leash`` of the measured pose, so a carrier blocked by a wall
+    does not wind up.
+    """
+    K = len(carrier_pose)
+    a = np.clip(np.asarray(actions, dtype=np.float64).reshape(K, N_CARRIERS, 3), -1.0, 1.0)
+    pose = carrier_pose
+    c, s = np.cos(pose[..., 2]), np.sin(pose[..., 2])
+    t = np.array(ctrl, dtype=np.float64).reshape(K, N_CARRIERS, 3)
+    lx, ly = cfg.target_leash, cfg.target_leash * cfg.max_step_yaw / cfg.max_step_xy
+    t[..., 0] = np.clip(t[..., 0], pose[..., 0] - lx, pose[..., 0] + lx) + (c * a[..., 0] - s * a[..., 1]) * cfg.max_step_xy
+    t[..., 1] = np.clip(t[..., 1], pose[..., 1] - lx, pose[..., 1] + lx) + (s * a[..., 0] + c * a[..., 1]) * cfg.max_step_xy
+    t[..., 2] = np.clip(t[..., 2], pose[..., 2] - ly, pose[..., 2] + ly) + a[..., 2] * cfg.max_step_yaw
+    return t.reshape(K, N_CARRIERS * 3)
+
+
+class _DataCopies(Sequence):
+    """``datas[k]``: env k's MjData at its current state, for reading and rendering: the state
+    copied out of the batch into an MjData kept per env, then ``mj_forward`` for the derived
+    fields (``xpos``, ``efc_force``, ...). A write to it does not reach the simulation."""
+
+    def __init__(self, phys: TransportPhysics):
+        self._phys = phys
+        self._copies = [mujoco.MjData(phys.model) for _ in range(phys.K)]
+
+    def __len__(self) -> int:
+        return len(self._copies)
+
+    def __getitem__(self, k):
+        if isinstance(k, slice):
+            return [self[i] for i in range(len(self))[k]]
+        k = range(len(self))[k]   # negative indices; IndexError past the end
+        d = self._phys.batch.get_data(k, self._copies[k])
+        mujoco.mj_forward(self._phys.models[k], d)
+        return d
+
+
 class TransportPhysics:
-    """One MjModel, K MjData; gathers the state of all K into numpy arrays.
+    """One MjModel, K simulations in one ``mujoco.batch.Batch``; the state of all K is live
+    [K, ...] arrays (``qpos``, ``qvel``; ``_ctrl`` the tracker targets), written in place.
 
     Payload mass randomization (``set_payload_mass``) needs a per-env model, since
     masses live in the MjModel: an env whose payload mass differs from the nominal one
     gets its own copy of the model (``models[k]``; ~30 kB), with the payload body's mass
     and inertia scaled (uniform density) and the derived constants (``mj_setConst``)
     recomputed, as if the MJCF had been compiled with that mass (tested). ``model`` stays
-    the nominal model.
+    the nominal model; the batch runs env k on ``models[k]``.
     """
 
     def __init__(self, spec: ScenarioSpec, cfg: EnvConfig, num_envs: int):
@@ -53,13 +147,19 @@ class TransportPhysics:
             raise ValueError("num_envs must be >= 1")
         self.cfg = cfg
         self.xml = build_mjcf(spec, cfg)
-        self.model = mujoco.MjModel.from_xml_string(self.xml)
-        self.datas = [mujoco.MjData(self.model) for _ in range(num_envs)]
+        self.model = compile_model(self.xml)
         self.models = [self.model] * num_envs   # per env; a copy once its payload mass is changed
         self.K = num_envs
+        # one thread (the caller's); not persistent: one MjData serves all K, which keeps it in cache
+        self.batch = mujoco.batch.Batch(self.model, num_envs, nthread=1)
+        self.batch.set_models(self.models)
+        self.batch.reset()
+        self._reset_state = self.batch.state[0].copy()   # mj_resetData's state row (the same for every mass)
+        self._models_changed = False
+        self._scratch = mujoco.MjData(self.model)   # mj_setConst's workspace
+        self.datas = _DataCopies(self)
         m = self.model
         self.payload_body = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "payload")
-        self._payload_inertia0 = m.body_inertia[self.payload_body].copy()
         jid = lambda name: m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, name)]
         self.carrier_qadr = np.array([[jid(f"c{i}_{a}") for a in ("x", "y", "yaw")] for i in range(N_CARRIERS)])
         self.carrier_vadr = np.array([[m.jnt_dofadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, f"c{i}_{a}")]
@@ -76,25 +176,23 @@ class TransportPhysics:
             name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, g) or ""
             self.is_wall[g] = name.startswith("wall")
         self.floor_id = floor
-        # preallocated state buffers, refreshed by read()
-        self.qpos = np.zeros((self.K, m.nq))
-        self.qvel = np.zeros((self.K, m.nv))
+        # live views of the batch's state rows (qpos, qvel, targets, grasps on/off) and sensor outputs
+        self.qpos = self.batch.bind("qpos")
+        self.qvel = self.batch.bind("qvel")
+        self._ctrl = self.batch.bind("ctrl")
+        self._eq_active = self.batch.bind("eq_active")
+        self._ncon = self.batch.bind("ncon")                 # [K] contacts at the last physics step
+        self._floor_contacts = self.batch.bind("sensordata")[:, 0]
         self.contact = np.zeros(self.K, dtype=bool)
         self.released = np.zeros(self.K, dtype=bool)
         self._grasp3 = np.concatenate([GRASP_LOCAL, np.zeros((N_CARRIERS, 1))], axis=1)[None]
-        self._ctrl = np.zeros((self.K, m.nu))
+        self._leash = (cfg.target_leash, cfg.target_leash * cfg.max_step_yaw / cfg.max_step_xy)
 
     # --- state access --------------------------------------------------------------
     def read(self):
-        for k, d in enumerate(self.datas):
-            self.qpos[k] = d.qpos
-            self.qvel[k] = d.qvel
-            ncon = d.ncon
-            if ncon:
-                g = d.contact.geom[:ncon]
-                self.contact[k] = bool(np.any(self.is_wall[g]))
-            else:
-                self.contact[k] = False
+        """Refresh ``contact``: some wall in contact at the last physics step (every contact
+        involves a wall or the floor, see :func:`compile_model`)."""
+        np.greater(self._ncon, self._floor_contacts, out=self.contact)
 
     @property
     def carrier_pose(self):
@@ -120,10 +218,9 @@ class TransportPhysics:
 
     def grasp_strain(self):
         """[K,3] 3-D distance between each carrier's hand anchor and its grasp point on the payload."""
-        from common.env.kernels import grasp_strain
-
         out = np.empty((self.K, N_CARRIERS))
-        grasp_strain(self.payload_pos, self.payload_quat, GRASP_LOCAL, self.carrier_pose[..., :2], CARRY_HEIGHT, out)
+        kernels.grasp_strain(self.payload_pos, self.payload_quat, GRASP_LOCAL, self.carrier_pose[..., :2], CARRY_HEIGHT,
+                             out)
         return out
 
     def grasp_strain_reference(self):
@@ -137,70 +234,82 @@ class TransportPhysics:
         return float(self.models[k].body_mass[self.payload_body])
 
     def set_payload_mass(self, k: int, mass: float):
-        """Give env k a payload of ``mass`` kg (mass and inertia scaled; takes effect now, call
-        before ``reset``). The nominal mass shares the nominal model again."""
-        b = self.payload_body
+        """Give env k a payload of ``mass`` kg (mass and inertia scaled; takes effect at the next
+        reset or step, call before ``reset``). The nominal mass shares the nominal model again."""
+        self._models_changed = True
         if mass == PAYLOAD_MASS:
             self.models[k] = self.model
             return
         if self.models[k] is self.model:
             self.models[k] = copy.copy(self.model)   # MjModel copies are deep
-        m = self.models[k]
-        m.body_mass[b] = mass
-        m.body_inertia[b] = self._payload_inertia0 * (mass / PAYLOAD_MASS)
-        mujoco.mj_setConst(m, self.datas[k])
-        # the compiler's model statistics (mj_setConst leaves them; the solver scales its
-        # tolerance with meaninertia): mean body mass and mean diagonal inertia at qpos0
-        m.stat.meanmass = float(m.body_mass[1:].mean())
-        m.stat.meaninertia = float(m.dof_M0.mean())
+        set_model_payload_mass(self.models[k], self.model, self.payload_body, mass, self._scratch)
+
+    def _sync_models(self):
+        """Hand changed per-env models to the batch (it reads them only as set)."""
+        if self._models_changed:
+            self.batch.set_models(self.models)
+            self._models_changed = False
 
     # --- control --------------------------------------------------------------------
-    def reset(self, k: int, payload_xy, payload_yaw: float, carrier_pose):
-        """Place env k: payload at (xy, carry height, yaw), carriers at carrier_pose [3,3], grasps on."""
-        m, d = self.models[k], self.datas[k]
-        mujoco.mj_resetData(m, d)
+    def reset(self, envs, payload_xy, payload_yaw, carrier_pose):
+        """Place envs ``envs`` (an index, or sorted distinct indices [n]): payload at (xy [n,2],
+        carry height, yaw [n]), carriers at carrier_pose [n,3,3], grasps on, targets on the carriers;
+        in one kernel call (:meth:`reset_reference` is the numpy computation)."""
+        envs, xy, yaw, pose = self._placement(envs, payload_xy, payload_yaw, carrier_pose)
+        self._sync_models()
+        kernels.reset_states(envs, self._reset_state, self.batch.state, self.qpos, self._ctrl, self._eq_active,
+                             self.payload_qadr, self.carrier_qadr, xy, yaw, pose, CARRY_HEIGHT)
+        self.released[envs] = False
+        self.contact[envs] = False
+
+    def reset_reference(self, envs, payload_xy, payload_yaw, carrier_pose):
+        """Numpy :meth:`reset`."""
+        envs, xy, yaw, pose = self._placement(envs, payload_xy, payload_yaw, carrier_pose)
+        self._sync_models()
+        self.batch.state[envs] = self._reset_state   # as mj_resetData: an env is its state row
+        q = self.qpos[envs]   # the reset state's qpos, then the placement
         a = self.payload_qadr
-        d.qpos[a:a + 3] = (payload_xy[0], payload_xy[1], CARRY_HEIGHT)
-        d.qpos[a + 3:a + 7] = (np.cos(payload_yaw / 2), 0.0, 0.0, np.sin(payload_yaw / 2))
-        d.qpos[self.carrier_qadr.reshape(-1)] = np.asarray(carrier_pose, float).reshape(-1)
-        d.ctrl[:] = d.qpos[self.carrier_qadr.reshape(-1)]
-        self._ctrl[k] = d.ctrl
-        d.eq_active[:] = 1
-        self.released[k] = False
-        mujoco.mj_forward(m, d)
-        self.qpos[k] = d.qpos
-        self.qvel[k] = d.qvel
-        self.contact[k] = False
+        q[:, a:a + 2] = xy
+        q[:, a + 2] = CARRY_HEIGHT
+        q[:, a + 3:a + 7] = 0.0
+        q[:, a + 3] = np.cos(yaw / 2)
+        q[:, a + 6] = np.sin(yaw / 2)
+        q[:, self.carrier_qadr.reshape(-1)] = pose
+        self.qpos[envs] = q
+        self._ctrl[envs] = pose
+        self._eq_active[envs] = 1.0
+        self.released[envs] = False
+        self.contact[envs] = False
+
+    @staticmethod
+    def _placement(envs, payload_xy, payload_yaw, carrier_pose):
+        """``reset``'s arguments as arrays: envs [n], xy [n,2], yaw [n], carrier poses [n,9]."""
+        envs = np.atleast_1d(np.asarray(envs, dtype=np.int64))
+        n = len(envs)
+        return (envs, np.asarray(payload_xy, dtype=np.float64).reshape(n, 2),
+                np.asarray(payload_yaw, dtype=np.float64).reshape(n),
+                np.asarray(carrier_pose, dtype=np.float64).reshape(n, -1))
 
     def targets(self, actions):
-        """Tracker targets [K,9] for stacked actions [K,9] (carrier-frame, in [-1,1]).
+        """Move the tracker targets (``_ctrl`` [K,9]) for stacked actions [K,9] (carrier-frame, in
+        [-1,1]); see :func:`tracker_targets_reference`."""
+        kernels.tracker_targets(self.qpos, self.carrier_qadr, np.asarray(actions, dtype=np.float64),
+                                self.cfg.max_step_xy, self.cfg.max_step_yaw, *self._leash, self._ctrl)
+        return self._ctrl
 
-        The target integrates the commanded displacements (so a stiff tracker holds the
-        commanded formation and inconsistent commands strain the grasps) but is kept
-        within ``target_leash`` of the measured pose, so a carrier blocked by a wall
-        does not wind up.
-        """
-        cfg = self.cfg
-        a = np.clip(np.asarray(actions, dtype=np.float64).reshape(self.K, N_CARRIERS, 3), -1.0, 1.0)
-        pose = self.carrier_pose
-        c, s = np.cos(pose[..., 2]), np.sin(pose[..., 2])
-        t = self._ctrl.reshape(self.K, N_CARRIERS, 3)
-        lx, ly = cfg.target_leash, cfg.target_leash * cfg.max_step_yaw / cfg.max_step_xy
-        t[..., 0] = np.clip(t[..., 0], pose[..., 0] - lx, pose[..., 0] + lx) + (c * a[..., 0] - s * a[..., 1]) * cfg.max_step_xy
-        t[..., 1] = np.clip(t[..., 1], pose[..., 1] - lx, pose[..., 1] + lx) + (s * a[..., 0] + c * a[..., 1]) * cfg.max_step_xy
-        t[..., 2] = np.clip(t[..., 2], pose[..., 2] - ly, pose[..., 2] + ly) + a[..., 2] * cfg.max_step_yaw
+    def targets_reference(self, actions):
+        """Numpy :meth:`targets`."""
+        self._ctrl[:] = tracker_targets_reference(self.carrier_pose, self._ctrl, actions, self.cfg)
         return self._ctrl
 
     def step(self, actions):
-        """Apply one control step to all K environments and refresh the state buffers."""
-        ctrl = self.targets(actions)
-        n = self.cfg.substeps
-        for k, d in enumerate(self.datas):
-            d.ctrl[:] = ctrl[k]
-            mujoco.mj_step(self.models[k], d, n)
+        """Apply one control step to all K environments (one batch call) and refresh ``contact``."""
+        self.targets(actions)
+        self._sync_models()
+        self.batch.step(nstep=self.cfg.substeps)
         self.read()
 
-    def release(self, k: int):
-        """Drop: deactivate env k's grasp constraints so the payload falls."""
-        self.datas[k].eq_active[:] = 0
-        self.released[k] = True
+    def release(self, envs):
+        """Drop: deactivate the grasp constraints of env(s) ``envs`` so the payload falls."""
+        self._eq_active[envs] = 0.0
+        self.released[envs] = True

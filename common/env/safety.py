@@ -115,6 +115,8 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from common.env import kernels
+from common.env.geometry import wall_table
 from common.env.layout import PAIRS
 from common.spec import JOINT_ACT_DIM, N_CARRIERS
 
@@ -401,7 +403,23 @@ def spec_barrier_min(carrier_sd, payload_sd, carrier_xy, pair_rest, cfg: SafetyC
     [K,3,2]`` gives the pair distances for the ``"grasp"`` formation band. Equals
     ``barriers_at_points(...)["min"]`` (same margins, ``inf`` without any barrier) at
     O(K) extra cost; ``< 0`` is a margin violation (``BatchEnv`` ``margin_violation``).
+    Computed by the numba kernel ``common.env.kernels.spec_barrier_min``;
+    :func:`spec_barrier_min_reference` is the same computation in numpy.
     """
+    carrier_sd = np.asarray(carrier_sd, dtype=np.float64)
+    payload_sd = np.asarray(payload_sd, dtype=np.float64)
+    K = carrier_sd.shape[0]
+    out = np.full(K, np.inf)
+    if K:
+        kernels.spec_barrier_min(carrier_sd.reshape(K, -1), payload_sd.reshape(K, -1),
+                                 np.asarray(carrier_xy, dtype=np.float64), np.asarray(pair_rest, dtype=np.float64),
+                                 cfg.carrier_radius, cfg.payload_margin, cfg.grasp_tol, bool(cfg.formation_budget),
+                                 out)
+    return out
+
+
+def spec_barrier_min_reference(carrier_sd, payload_sd, carrier_xy, pair_rest, cfg: SafetyConfig) -> np.ndarray:
+    """Numpy :func:`spec_barrier_min`."""
     carrier_sd = np.asarray(carrier_sd, dtype=np.float64)
     payload_sd = np.asarray(payload_sd, dtype=np.float64)
     K = carrier_sd.shape[0]
@@ -478,6 +496,50 @@ def _formation_rows(geom, carrier_B, cfg):
     return C, c, mask, h, ent
 
 
+class SafetyModel:
+    """The safety model of a batch of ``num_envs`` envs with fixed walls and config, checked and
+    laid out once, so that a call is a kernel and its (fresh) outputs: ``BatchEnv``'s per-step
+    path. Geometry arrays are float64 as in :class:`SafetyGeometry`.
+
+    ``rows(carrier_xy, carrier_yaw, payload_xy, payload_yaw, payload_points_local, grasp_local,
+    pair_rest)`` returns ``C, c, row_mask, h, entity, wall`` as :func:`build_rows` (ValueError on
+    a non-finite state or coincident grasp points); ``barrier_min(carrier_sd, payload_sd,
+    carrier_xy, pair_rest)`` is :func:`spec_barrier_min` for ``[K,3]``, ``[K,P]`` distances.
+    """
+
+    def __init__(self, walls: np.ndarray, cfg: SafetyConfig, num_envs: int):
+        walls = np.asarray(walls, dtype=np.float64)
+        _check_walls(walls, num_envs)
+        self.tables = wall_table(walls[None] if walls.ndim == 2 else walls)   # [1 or K, 6, W]
+        self.cfg = cfg
+        self.num_envs = num_envs
+        self._rows_prm = (float(cfg.max_step_xy), float(cfg.alpha), float(cfg.carrier_radius),
+                          float(cfg.payload_margin), float(cfg.grasp_tol), float(cfg.search_radius),
+                          int(cfg.walls_per_carrier), int(cfg.walls_per_point), cfg.carrier_budget,
+                          cfg.payload_budget, cfg.formation_budget)
+        self._barrier_prm = (float(cfg.carrier_radius), float(cfg.payload_margin), float(cfg.grasp_tol),
+                             bool(cfg.formation_budget))
+
+    def rows(self, carrier_xy, carrier_yaw, payload_xy, payload_yaw, payload_points_local, grasp_local, pair_rest):
+        K, M = self.num_envs, int(self.cfg.max_rows)
+        C, c, h = np.empty((K, M, JOINT_ACT_DIM)), np.empty((K, M)), np.empty((K, M))
+        mask = np.empty((K, M), dtype=bool)
+        entity, wall = np.empty((K, M), dtype=np.int64), np.empty((K, M), dtype=np.int64)
+        status = kernels.safety_rows(carrier_xy, carrier_yaw, payload_xy, payload_yaw, payload_points_local,
+                                     grasp_local, pair_rest, self.tables, *self._rows_prm, C, c, mask, h, entity,
+                                     wall)
+        if status == kernels.ROWS_COINCIDE:
+            raise ValueError("grasp points coincide: the payload rotation fit is undefined")
+        if status:
+            raise ValueError("safety geometry contains NaN or Inf")
+        return C, c, mask, h, entity, wall
+
+    def barrier_min(self, carrier_sd, payload_sd, carrier_xy, pair_rest) -> np.ndarray:
+        out = np.empty(self.num_envs)
+        kernels.spec_barrier_min(carrier_sd, payload_sd, carrier_xy, pair_rest, *self._barrier_prm, out)
+        return out
+
+
 def build_rows(geom: SafetyGeometry, walls: np.ndarray, cfg: SafetyConfig):
     """Affine rows ``C a >= c`` (Eq. joint_safety_rows) for the next stacked action.
 
@@ -487,36 +549,17 @@ def build_rows(geom: SafetyGeometry, walls: np.ndarray, cfg: SafetyConfig):
     the ``"grasp"`` profile), ``entity [K,M]`` (carrier, payload point or pair
     index; -1 on padding) and ``wall [K,M]`` (-1 if none).
     See the module docstring for the derivation, conservativeness and budget.
-    Computed per env by the numba kernel ``common.env.kernels.safety_rows``;
-    :func:`build_rows_reference` is the same computation in numpy.
+    Computed per env by the numba kernel ``common.env.kernels.safety_rows`` (via
+    :class:`SafetyModel`); :func:`build_rows_reference` is the same computation in numpy.
     """
-    from common.env.kernels import safety_rows
-
     if not isinstance(geom, SafetyGeometry):
         raise TypeError(f"geom must be a SafetyGeometry, got {type(geom).__name__}")
     K = geom.num_envs
-    walls = np.asarray(walls, dtype=np.float64)
-    _check_walls(walls, K)
-    walls = np.ascontiguousarray(walls[None] if walls.ndim == 2 else walls)
-    M = int(cfg.max_rows)
-    cb, pb, fb = cfg.carrier_budget, cfg.payload_budget, cfg.formation_budget
-    C = np.zeros((K, M, JOINT_ACT_DIM))
-    c = np.zeros((K, M))
-    mask = np.zeros((K, M), dtype=bool)
-    h = np.zeros((K, M))
-    entity = np.full((K, M), -1, dtype=np.int64)
-    if fb:
-        entity[:, cb + pb:] = np.repeat(np.arange(len(PAIRS)), 2)
-    wall = np.full((K, M), -1, dtype=np.int64)
-    ok = safety_rows(geom.carrier_xy, geom.carrier_yaw, geom.payload_xy, geom.payload_yaw,
-                     geom.payload_points_local, geom.grasp_local, geom.pair_rest, walls,
-                     float(cfg.max_step_xy), float(cfg.alpha), float(cfg.carrier_radius),
-                     float(cfg.payload_margin), float(cfg.grasp_tol), float(cfg.search_radius),
-                     int(cfg.walls_per_carrier), int(cfg.walls_per_point), cb, pb, fb,
-                     C, c, mask, h, entity, wall)
-    if not ok:
-        raise ValueError("grasp points coincide: the payload rotation fit is undefined")
-    info = {"h": h, "kind": np.broadcast_to(cfg.slot_kinds, (K, M)).copy(), "entity": entity, "wall": wall}
+    C, c, mask, h, entity, wall = SafetyModel(walls, cfg, K).rows(
+        geom.carrier_xy, geom.carrier_yaw, geom.payload_xy, geom.payload_yaw, geom.payload_points_local,
+        geom.grasp_local, geom.pair_rest)
+    info = {"h": h, "kind": np.broadcast_to(cfg.slot_kinds, (K, len(cfg.slot_kinds))).copy(), "entity": entity,
+            "wall": wall}
     return C, c, mask, info
 
 

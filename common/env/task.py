@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.env import kernels
 from common.env.config import EnvConfig
 from common.env.geometry import wrap
 
@@ -36,6 +37,25 @@ class StepOutcome:
 
 def step_outcome(snap, s_old: np.ndarray, t: np.ndarray, max_steps: int, goal_xy: np.ndarray,
                  goal_yaw: np.ndarray, cfg: EnvConfig) -> StepOutcome:
+    """The outcome of the step that led to ``snap`` (``s_old`` [K]: the route projection before it,
+    ``t`` [K]: steps taken including it), in one kernel call; :func:`step_outcome_reference` is
+    the numpy computation."""
+    K, w = len(s_old), cfg.reward
+    (reward, heading_error), flags = np.empty((2, K)), np.empty((5, K), bool)
+    o = StepOutcome(reward=reward, success=flags[0], drop=flags[1], terminated=flags[2], truncated=flags[3],
+                    collision=flags[4], heading_error=heading_error)
+    o.collision[:] = snap.contact
+    kernels.step_outcome_rows(
+        snap.strain, snap.pxy, snap.pyaw, snap.route_yaw, snap.s, snap.contact, s_old, t, max_steps, goal_xy,
+        goal_yaw, cfg.drop_strain, cfg.goal_pos_tol, cfg.goal_yaw_tol, cfg.max_step_xy, w.progress, w.heading,
+        w.strain, w.collision, w.drop, w.time, w.success, o.reward, o.success, o.drop, o.terminated, o.truncated,
+        o.heading_error)
+    return o
+
+
+def step_outcome_reference(snap, s_old: np.ndarray, t: np.ndarray, max_steps: int, goal_xy: np.ndarray,
+                           goal_yaw: np.ndarray, cfg: EnvConfig) -> StepOutcome:
+    """Numpy :func:`step_outcome`."""
     w = cfg.reward
     drop = snap.strain.max(axis=1) > cfg.drop_strain
     pos_err = np.linalg.norm(snap.pxy - goal_xy, axis=1)
@@ -43,7 +63,7 @@ def step_outcome(snap, s_old: np.ndarray, t: np.ndarray, max_steps: int, goal_xy
     success = (pos_err < cfg.goal_pos_tol) & (yaw_err < cfg.goal_yaw_tol) & ~drop
     terminated = drop | success
     truncated = (t >= max_steps) & ~terminated
-    collision = snap.contact
+    collision = snap.contact.copy()
     heading_err = np.abs(wrap(snap.route_yaw - snap.pyaw))
     ds = np.clip(snap.s - s_old, -2 * cfg.max_step_xy, 2 * cfg.max_step_xy)
     reward = (w.progress * ds / cfg.max_step_xy - w.heading * heading_err

@@ -1,5 +1,5 @@
 """`sage bench env` (env control steps/s vs the raw ``mujoco.rollout`` physics
-bound of the same model, measured in the same run) and `sage bench scripted`
+bound of the same physics steps, measured in the same run) and `sage bench scripted`
 (the scripted reference controller's success rate per scenario)."""
 from __future__ import annotations
 
@@ -13,6 +13,59 @@ from common.env.scenarios import SCENARIOS
 from sage.errors import nonneg_int, positive_int
 
 
+def _record_physics_calls(env):
+    """Wrap ``env.phys.batch.step`` to keep the state rows (mjSTATE_INTEGRATION: state, applied
+    tracker targets, grasps, solver warm start) and the payload masses each call starts from."""
+    calls = []
+    phys = env.phys
+    step = phys.batch.step
+
+    def recording_step(*args, **kwargs):
+        calls.append((phys.batch.state.copy(), env.payload_mass.copy()))
+        return step(*args, **kwargs)
+
+    phys.batch.step = recording_step
+    return calls
+
+
+def _replay_inputs(phys, calls):
+    """mujoco.rollout inputs that replay the recorded physics calls: one rollout of ``substeps``
+    steps per (control step, env) from its recorded state, with its applied controls held and
+    its model (the MJCF's, without the env's contact sensors, at that env's payload mass)."""
+    import copy
+
+    import mujoco
+    import numpy as np
+
+    from common.env.layout import PAYLOAD_MASS
+    from common.env.physics import set_model_payload_mass
+
+    bare = mujoco.MjModel.from_xml_string(phys.xml)
+    data = mujoco.MjData(bare)
+    payload = mujoco.mj_name2id(bare, mujoco.mjtObj.mjOBJ_BODY, "payload")
+    full, spec = mujoco.mjtState.mjSTATE_FULLPHYSICS, mujoco.mjtState.mjSTATE_INTEGRATION
+    ctrl_spec = mujoco.mjtState.mjSTATE_CTRL | mujoco.mjtState.mjSTATE_EQ_ACTIVE
+    n = len(calls) * phys.K
+    state0 = np.empty((n, mujoco.mj_stateSize(bare, full)))
+    warm0 = np.empty((n, bare.nv))
+    control = np.empty((n, phys.cfg.substeps, mujoco.mj_stateSize(bare, ctrl_spec)))
+    models, by_mass = [], {PAYLOAD_MASS: bare}
+    for t, (rows, masses) in enumerate(calls):
+        for k in range(phys.K):
+            i = t * phys.K + k
+            mujoco.mj_setState(bare, data, rows[k], spec)
+            mujoco.mj_getState(bare, data, state0[i], full)
+            warm0[i] = data.qacc_warmstart
+            mujoco.mj_getState(bare, data, control[i, 0], ctrl_spec)
+            control[i, 1:] = control[i, 0]
+            mass = float(masses[k])
+            if mass not in by_mass:
+                by_mass[mass] = copy.copy(bare)
+                set_model_payload_mass(by_mass[mass], bare, payload, mass, data)
+            models.append(by_mass[mass])
+    return models, data, state0, warm0, control, int(ctrl_spec)
+
+
 def bench_env(scenario: str = "maze", num_envs: int = 16, steps: int = 100, seed: int = 0,
               repeats: int = 5) -> dict:
     """Control steps/s of BatchEnv (random actions, obs and safety rows included) vs the raw
@@ -20,19 +73,20 @@ def bench_env(scenario: str = "maze", num_envs: int = 16, steps: int = 100, seed
     so absolute rates are noisy and the ratio of two back-to-back measurements is the figure).
 
     Each round times ``steps`` env control steps, then replays exactly those physics steps in C
-    with ``mujoco.rollout`` on the same model: the K envs' states (and solver warm starts) at the
-    start of the round, the tracker targets the env applied at each control step held for its
-    ``substeps`` physics steps, one thread, output buffer preallocated. Episode resets inside the
-    round are env work and are not replayed. A warm-up step before timing loads the numba kernels.
-    ``ratio_cpu`` is the same ratio from this thread's CPU time (both parts run single-threaded in
-    this thread), which is less sensitive to other processes on a loaded machine.
+    with ``mujoco.rollout``, one thread: every (control step, env) from the state it started from
+    (qpos, qvel, solver warm start; after any episode reset), with the tracker targets and grasp
+    flags it applied held for its ``substeps`` physics steps, on the MJCF's model at that env's
+    payload mass; inputs are built before timing and no outputs are recorded. Episode resets,
+    observations, rows, the env's floor-contact sensor and the recording of the env's physics
+    calls (a state-row copy per step) count as env time. A warm-up step before timing loads the
+    numba kernels. ``ratio_cpu`` is the same ratio from this thread's CPU time (both parts run
+    single-threaded in this thread), which is less sensitive to other processes on a loaded
+    machine.
     """
     import statistics
 
-    import mujoco
     import mujoco.rollout
     import numpy as np
-
 
     if num_envs < 1 or steps < 1 or repeats < 1:
         raise ValueError("num_envs, steps and repeats must be >= 1")
@@ -40,29 +94,23 @@ def bench_env(scenario: str = "maze", num_envs: int = 16, steps: int = 100, seed
     env.reset()
     rng = np.random.default_rng(seed)
     env.step(rng.uniform(-1.0, 1.0, (num_envs, 9)))  # warm-up (numba kernels, caches)
-    m, n_sub = env.phys.model, env.cfg.substeps
-    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-    state0 = np.zeros((num_envs, mujoco.mj_stateSize(m, spec)))
-    warm0 = np.zeros((num_envs, m.nv))
-    ctrls = np.zeros((num_envs, steps, m.nu))
-    out_state = np.zeros((num_envs, steps * n_sub, state0.shape[1]))
-    data = mujoco.MjData(m)
+    calls = _record_physics_calls(env)
+    n_sub = env.cfg.substeps
     rounds = []
-    for _ in range(repeats):
-        acts = rng.uniform(-1.0, 1.0, (steps, num_envs, 9))
-        for k, d in enumerate(env.phys.datas):
-            mujoco.mj_getState(m, d, state0[k], spec)
-            warm0[k] = d.qacc_warmstart
-        t0, c0 = time.perf_counter(), time.thread_time()
-        for t in range(steps):
-            env.step(acts[t])
-            ctrls[:, t] = env.phys._ctrl  # the targets applied during this control step
-        t_env, c_env = time.perf_counter() - t0, time.thread_time() - c0
-        control = np.repeat(ctrls, n_sub, axis=1)
-        t0, c0 = time.perf_counter(), time.thread_time()
-        mujoco.rollout.rollout(m, data, state0, control, initial_warmstart=warm0, state=out_state)
-        t_raw, c_raw = time.perf_counter() - t0, time.thread_time() - c0
-        rounds.append((steps * num_envs / t_env, steps * num_envs / t_raw, c_raw / c_env))
+    with mujoco.rollout.Rollout(nthread=0) as raw:
+        for _ in range(repeats):
+            acts = rng.uniform(-1.0, 1.0, (steps, num_envs, 9))
+            calls.clear()
+            t0, c0 = time.perf_counter(), time.thread_time()
+            for t in range(steps):
+                env.step(acts[t])
+            t_env, c_env = time.perf_counter() - t0, time.thread_time() - c0
+            models, data, state0, warm0, control, ctrl_spec = _replay_inputs(env.phys, calls)
+            t0, c0 = time.perf_counter(), time.thread_time()
+            raw.rollout(models, [data], state0, control, control_spec=ctrl_spec, skip_checks=True, nstep=n_sub,
+                        initial_warmstart=warm0)
+            t_raw, c_raw = time.perf_counter() - t0, time.thread_time() - c0
+            rounds.append((steps * num_envs / t_env, steps * num_envs / t_raw, c_raw / c_env))
     env_sps = statistics.median(r[0] for r in rounds)
     raw_sps = statistics.median(r[1] for r in rounds)
     ratio = statistics.median(r[0] / r[1] for r in rounds)
