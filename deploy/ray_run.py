@@ -57,7 +57,7 @@ from common.rundir import RunDir, atomic_write_text
 from common.status import LiveLine, StatusBoard
 from common.transport import TlsFiles
 from deploy.sage_run import router_spec, service_specs
-from deploy.supervisor import EXIT_GAVE_UP, ServiceSpec, free_tcp_port
+from deploy.supervisor import EXIT_GAVE_UP, ServiceSpec, free_tcp_port, wait_tcp_ready
 from services.config import TrainConfig
 from services.launcher import ROLES, run_members
 
@@ -468,16 +468,11 @@ class RayRun:
         if p.spec.ready_tcp is None or p.state != "running":
             return
         host, port = p.spec.ready_tcp
-        deadline = time.monotonic() + self.placement.ready_timeout_s
-        while time.monotonic() < deadline and not self.signals:
-            try:
-                with socket.create_connection((host, port), timeout=0.5):
-                    self.event("ready", service=p.spec.name, endpoint=f"{host}:{port}")
-                    return
-            except OSError:
-                time.sleep(0.05)
-        raise RuntimeError(f"{p.spec.name} did not accept connections on {host}:{port} within "
-                           f"{self.placement.ready_timeout_s} s; see {self.paths.log(p.spec.name)}")
+        if wait_tcp_ready(host, port, self.placement.ready_timeout_s, give_up=lambda: bool(self.signals)):
+            self.event("ready", service=p.spec.name, endpoint=f"{host}:{port}")
+        elif not self.signals:
+            raise RuntimeError(f"{p.spec.name} did not accept connections on {host}:{port} within "
+                               f"{self.placement.ready_timeout_s} s; see {self.paths.log(p.spec.name)}")
 
     def _placement_timeout(self, p: _Placed) -> None:
         p.state = "failed"

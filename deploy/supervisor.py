@@ -42,6 +42,19 @@ from common.status import LiveLine
 EXIT_GAVE_UP = 1
 
 
+def wait_tcp_ready(host: str, port: int, timeout_s: float, give_up: Callable[[], bool] = lambda: False) -> bool:
+    """Until ``host:port`` accepts a TCP connection (True), ``timeout_s`` passes
+    or ``give_up()`` is true (False); ``give_up`` may also raise."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and not give_up():
+        try:
+            with socket.create_connection((host, port), timeout=0.5):
+                return True
+        except OSError:
+            time.sleep(0.05)
+    return False
+
+
 @dataclass
 class SupervisorConfig:
     backoff_initial_s: float = 0.5     # delay before the first restart of a crashed service
@@ -159,20 +172,17 @@ class Supervisor:
         self.event("start", service=c.spec.name, pid=c.proc.pid, attempt=c.starts, argv=c.spec.argv)
 
     def _wait_ready(self, c: _Child) -> None:
-        host, port = c.spec.ready_tcp
-        deadline = time.monotonic() + self.cfg.ready_timeout_s
-        while time.monotonic() < deadline:
+        def exited() -> bool:
             if c.proc.poll() is not None:
                 raise RuntimeError(f"{c.spec.name} exited with code {c.proc.returncode} during start-up; "
                                    f"see {self.paths.log(c.spec.name)}")
-            try:
-                with socket.create_connection((host, port), timeout=0.5):
-                    self.event("ready", service=c.spec.name, endpoint=f"{host}:{port}")
-                    return
-            except OSError:
-                time.sleep(0.05)
-        raise RuntimeError(f"{c.spec.name} did not accept connections on {host}:{port} "
-                           f"within {self.cfg.ready_timeout_s} s")
+            return False
+
+        host, port = c.spec.ready_tcp
+        if not wait_tcp_ready(host, port, self.cfg.ready_timeout_s, give_up=exited):
+            raise RuntimeError(f"{c.spec.name} did not accept connections on {host}:{port} "
+                               f"within {self.cfg.ready_timeout_s} s")
+        self.event("ready", service=c.spec.name, endpoint=f"{host}:{port}")
 
     def start(self) -> None:
         for c in self.children:

@@ -21,23 +21,16 @@ from pathlib import Path
 
 import pytest
 
-from deploy.ray_run import RayPlacement, parse_resources
-from sage.cli import main
+sys.path.insert(0, str(Path(__file__).parent))
+from test_supervisor import wait_for  # noqa: E402
+
+from deploy.ray_run import RayPlacement, parse_resources  # noqa: E402
+from sage.cli import main  # noqa: E402
 
 PY = sys.executable
 ROOT = Path(__file__).resolve().parents[1]
 HAVE_RAY = importlib.util.find_spec("ray") is not None
 needs_ray = pytest.mark.skipif(not HAVE_RAY, reason="ray is not installed (pip install -e '.[cluster]')")
-
-
-def wait_for(pred, timeout: float, what: str, poll: float = 0.2):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = pred()
-        if value:
-            return value
-        time.sleep(poll)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
 def alive(pid: int) -> bool:
