@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_supervisor import wait_for  # noqa: E402
+from test_supervisor import alive, wait_for  # noqa: E402
 
 from deploy.ray_run import RayPlacement, parse_resources  # noqa: E402
 from sage.cli import main  # noqa: E402
@@ -31,14 +31,6 @@ PY = sys.executable
 ROOT = Path(__file__).resolve().parents[1]
 HAVE_RAY = importlib.util.find_spec("ray") is not None
 needs_ray = pytest.mark.skipif(not HAVE_RAY, reason="ray is not installed (pip install -e '.[cluster]')")
-
-
-def alive(pid: int) -> bool:
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except (FileNotFoundError, ProcessLookupError):
-        return False
-    return stat.rsplit(")", 1)[1].split()[0] not in ("Z", "X")
 
 
 def processes_mentioning(text: str) -> list[int]:
