@@ -104,12 +104,14 @@ class Arr:
     ``shape`` entries are ints (fixed size), strings (symbols that must take
     the same value in every field of one message), or None (free). ``send``
     is the dtype (an ``ALLOWED_DTYPES`` name) our own senders use; a decoder
-    accepts any dtype of the category.
+    accepts any dtype of the category. An ``optional`` field may be absent
+    (decoded as None).
     """
 
     category: str  # "float" | "int" | "bool"
     shape: tuple
     send: str = ""
+    optional: bool = False
 
     @property
     def send_dtype(self) -> np.dtype:
@@ -187,6 +189,11 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         "method": Scalar("str"),
         "params": ArrDict(),
         "settings": FloatDict(),             # Method.actor_settings: kappa, tau, ...
+        # Demand pacing (ActorConfig.max_chunks_ahead), per actor id: the sequence
+        # number of the last chunk the learner admitted from it (-1: none) and how
+        # many of its chunks wait unused. Absent from a learner that does not pace.
+        "chunks_received": Arr("int", ("A",), optional=True),
+        "chunks_waiting": Arr("int", ("A",), optional=True),
     },
     # Actor -> shield query payload on sage/<run>/shield/<k> (one batched request per step).
     "shield_req": {
@@ -471,7 +478,7 @@ def _validate_body(kind: str, body) -> dict:
     dims: dict[str, tuple[int, str]] = {}  # symbol -> (size, first field that bound it)
     for name, spec in schema.items():
         if name not in body:
-            if isinstance(spec, Scalar) and spec.optional:
+            if isinstance(spec, (Scalar, Arr)) and spec.optional:
                 out[name] = None
                 continue
             raise WireError("missing_field", f"{kind}.{name}")

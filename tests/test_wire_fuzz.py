@@ -66,8 +66,8 @@ def valid_body(kind: str, sizes: dict, rng: np.random.Generator) -> dict:
 
 def seed_payloads() -> list[bytes]:
     rng = np.random.default_rng(SEED)
-    small = {s: 1 for s in "TKMOSBD"}
-    other = {"T": 2, "K": 2, "M": 0, "O": 2, "S": 3, "B": 2, "D": 3}   # zero-size arrays too
+    small = {s: 1 for s in "TKMOSBDA"}
+    other = {"T": 2, "K": 2, "M": 0, "O": 2, "S": 3, "B": 2, "D": 3, "A": 2}   # zero-size arrays too
     out = []
     for kind in wire.SCHEMAS:
         for i, sizes in enumerate((small, other)):
@@ -271,7 +271,9 @@ def check_accepted(msg: wire.Message) -> None:
             assert (spec.lo if spec.lo is not None else wire.INT64_MIN) <= v <= wire.INT64_MAX
         if isinstance(spec, wire.Scalar) and spec.choices:
             assert v in spec.choices
-        if isinstance(spec, wire.Arr):
+        if isinstance(spec, wire.Arr) and v is None:
+            assert spec.optional
+        elif isinstance(spec, wire.Arr):
             assert v.size <= wire.MAX_ARRAY_ELEMENTS
 
 

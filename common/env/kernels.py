@@ -15,6 +15,9 @@ tie-breaking: the first minimum wins, sorts are stable) so results agree to roun
 its result (a signed distance is 1-Lipschitz, so walls far from a body's origin are far
 from all its points), the skip is exact. The per-step kernels take the envs to process
 as an index array ``envs`` and write those rows of full-size [K, ...] outputs.
+The kernels called from Python are ``nogil``: in the in-process placement the actor's
+env step then runs beside the learner's and the shield's threads instead of holding
+the interpreter lock.
 """
 from __future__ import annotations
 
@@ -82,7 +85,7 @@ def _select_walls(sd, limit, tab, out, idx):
     return n
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def signed_distances(pts, tab, out):
     """``WallSet.signed_distance`` for points ``[N,2]`` into ``out [N,W]``."""
     for p in range(pts.shape[0]):
@@ -106,7 +109,7 @@ def _nearest_wall(px, py, tab, nw, buf):
     return buf[bw], c * bdx - s * bdy, s * bdx + c * bdy
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def nearest_walls(pts, tab, dist, vec):
     """``WallSet.nearest`` for points ``[N,2]``: fills ``dist [N]`` and ``vec [N,2]``."""
     buf = np.empty(tab.shape[1])
@@ -138,7 +141,7 @@ def _ray_distance(ox, oy, ux, uy, tab, nw, max_dist):
     return min(best, max_dist)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def ray_distances(origin, direction, tab, max_dist, out):
     """``WallSet.ray_distance`` (slab test) for rays ``origin, direction [N,2]`` into ``out [N]``."""
     for p in range(origin.shape[0]):
@@ -146,7 +149,7 @@ def ray_distances(origin, direction, tab, max_dist, out):
                                max_dist)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def pose_clearance(x, y, yaw, pts_local, grasp_local, tab, carrier_radius):
     """``BatchEnv.start_clearance_reference``: formation clearance of the payload pose ``(x, y, yaw)``
     with the carriers on their grasps (payload boundary points, carrier discs vs the walls)."""
@@ -189,7 +192,7 @@ def _route_project(points, s_table, ds, x, y, s_prev, back, width):
     return s_table[bi]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def route_project(points, s_table, ds, xy, s_prev, back, width, out):
     """``Route.project``: nearest route sample to ``xy [K,2]`` in the window from ``s_prev - back``."""
     for k in range(xy.shape[0]):
@@ -248,7 +251,7 @@ def _wall_normal(px, py, tab, w):
     return c * nlx + (-s) * nly, s * nlx + c * nly
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _wall_rows(k, pts, B, tab, nw, widx, margin, take, budget, alpha, search_radius, row0,
                C, c, mask, h_out, ent_out, wall_out, sd_buf, near_h, near_w, cand_key, cand_idx):
     """Wall rows of one kind for env ``k`` (see ``safety._wall_rows_reference``), written to rows
@@ -308,7 +311,7 @@ def _wall_rows(k, pts, B, tab, nw, widx, margin, take, budget, alpha, search_rad
                 C[k, row, b] = 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def safety_rows(carrier_xy, carrier_yaw, payload_xy, payload_yaw, pts_local, grasp_local, pair_rest,
                 tabs, max_step_xy, alpha, carrier_radius, payload_margin, grasp_tol, search_radius,
                 walls_per_carrier, walls_per_point, carrier_budget, payload_budget, formation_budget,
@@ -463,7 +466,7 @@ def _grasp_strain(px, py, pz, w, ux, uy, uz, gx, gy, cx, cy, hand_z):
     return math.sqrt(dx * dx + dy * dy + dz * dz)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def grasp_strain(payload_pos, payload_quat, grasp_local, carrier_xy, hand_z, out):
     """``TransportPhysics.grasp_strain_reference``: ``out [K,3]`` = 3-D distance from each carrier's
     hand anchor ``(x, y, hand_z)`` to its grasp point ``pos + q ⊗ (g, 0)`` on the payload."""
@@ -475,7 +478,7 @@ def grasp_strain(payload_pos, payload_quat, grasp_local, carrier_xy, hand_z, out
                                       hand_z)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def reset_states(envs, reset_row, state, qpos, ctrl, eq_active, payload_qadr, carrier_qadr, xy, yaw, pose,
                  carry_height):
     """``TransportPhysics.reset_reference``: the state rows of envs ``envs`` become ``reset_row``
@@ -500,7 +503,7 @@ def reset_states(envs, reset_row, state, qpos, ctrl, eq_active, payload_qadr, ca
         eq_active[k, :] = 1.0
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def tracker_targets(qpos, carrier_qadr, actions, max_step_xy, max_step_yaw, leash_xy, leash_yaw, ctrl):
     """``physics.tracker_targets_reference`` in place: ``ctrl [K,9]`` (carrier i's x, y, yaw at
     ``3i..3i+2``) becomes the new tracker targets for actions ``[K,9]`` at the pose in ``qpos``."""
@@ -534,7 +537,7 @@ def _route_index(s, ds, n):
     return int(min(max(np.rint(s / ds), 0.0), n - 1.0))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def place_episodes(envs, start, goal_s, route_points, route_heading, ds, grasp_local, facing, goal_xy, goal_yaw,
                    carriers):
     """``BatchEnv._place_episodes_reference``: rows ``envs`` of ``goal_xy``, ``goal_yaw`` (the route
@@ -554,7 +557,7 @@ def place_episodes(envs, start, goal_s, route_points, route_heading, ds, grasp_l
         goal_yaw[k] = route_heading[ig]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def snapshot_rows(envs, qpos, qvel, contact, carrier_qadr, carrier_vadr, payload_qadr, payload_vadr,
                   route_points, route_s, route_heading, ds, back, width, s_prev, goal_s, lookahead, tab, pts_local,
                   grasp_local, hand_z, carrier_radius,
@@ -631,7 +634,7 @@ def _to_frame(x, y, c, s):
     return c * x + s * y, -s * x + c * y
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def observe_rows(envs, cxy, cyaw, cvel, pxy, pz, pyaw, tilt, pvel, strain, look_xy, look_yaw, clearance, pay_dist,
                  pay_vec, goal_xy, goal_yaw, progress, time_left, human_slot, tab, grasp_local, facing,
                  ray_angles, v_scale, w_scale, lookahead, drop_strain, carrier_radius, ray_max, carry_height,
@@ -740,7 +743,7 @@ def observe_rows(envs, cxy, cyaw, cvel, pxy, pz, pyaw, tilt, pvel, strain, look_
         st[50] = time_left[k]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def step_outcome_rows(strain, pxy, pyaw, route_yaw, s, contact, s_old, t, max_steps, goal_xy, goal_yaw,
                       drop_strain, goal_pos_tol, goal_yaw_tol, max_step_xy, w_progress, w_heading, w_strain,
                       w_collision, w_drop, w_time, w_success, reward, success, drop, terminated, truncated,
@@ -766,7 +769,7 @@ def step_outcome_rows(strain, pxy, pyaw, route_yaw, s, contact, s_old, t, max_st
                      - w_collision * contact[k] - w_drop * dr - w_time + w_success * su)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def accumulate_episodes(acc, min_clear, reward, collision, margin_violation, tilt, heading_err, pz, clearance,
                         carry_height):
     """``BatchEnv._accumulate_reference``: add one step to the per-episode sums ``acc [6,K]``
@@ -782,7 +785,7 @@ def accumulate_episodes(acc, min_clear, reward, collision, margin_violation, til
         min_clear[k] = min(min_clear[k], clearance[k])
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def add_noise(envs, block, used, std, obs):
     """``obs[k] += block[k, used[k]] * std`` and ``used[k] += 1`` for k in ``envs`` (float32, the
     arithmetic of ``obs + noise * std``): each env's next observation-noise draw."""
@@ -797,7 +800,7 @@ def add_noise(envs, block, used, std, obs):
 
 # ----------------------------------------------------------------------------- margins
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def spec_barrier_min(carrier_sd, payload_sd, carrier_xy, pair_rest, carrier_radius, payload_margin, grasp_tol,
                      formation, out):
     """``safety.spec_barrier_min_reference`` into ``out [K]``; ``formation``: include the pair band."""

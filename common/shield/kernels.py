@@ -10,7 +10,9 @@ Two independent pieces live here:
   with multipliers re-derived by a separate Lawson–Hanson NNLS, so a bug in the
   solver cannot hide itself in its own certificate.
 
-Both loop over the batch inside the compiled function (one core, no threads).
+Both loop over the batch inside the compiled function (one core, no threads) and
+release the interpreter lock (``nogil``), so an in-process shield thread solves
+while the actor and learner threads run.
 """
 from __future__ import annotations
 
@@ -29,7 +31,7 @@ _GI_INFEASIBLE = 1
 _GI_MAX_ITER = 2
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _gi_drop(l, q, n, R, JT, u, act, in_act):
     """Remove active constraint number ``l`` and restore R to triangular form.
 
@@ -65,7 +67,7 @@ def _gi_drop(l, q, n, R, JT, u, act, in_act):
     return q - 1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _gi_solve(y0, NT, b, norms, mg, bvar, bsign, m, n, tol, dep_tol, max_iter,
               y, JT, R, u, act, in_act, dvec, z, r, sres):
     """Goldfarb–Idnani dual active set for min ½‖y − y0‖² s.t. rows(y) ≥ b[:m].
@@ -200,7 +202,7 @@ def _gi_solve(y0, NT, b, norms, mg, bvar, bsign, m, n, tol, dep_tol, max_iter,
             q = _gi_drop(l, q, n, R, JT, u, act, in_act)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _append_box_rows(m, nf, free, lo, hi, bvar, bsign, bvec, norms):
     """The box as ordinary bound rows from slot ``m`` on: x_k ≥ lo_k and −x_k ≥ −hi_k
     for every free variable k. Returns the next free slot."""
@@ -217,7 +219,7 @@ def _append_box_rows(m, nf, free, lo, hi, bvar, bsign, bvec, norms):
     return m
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def solve_batch_active_set(a, C, c, row_mask, fixed, lo, hi, tol, dep_tol, zero_tol,
                            max_iter, rho, x_out, status, iters):
     """Solve B projections Eq. (qpshield) with the box and fixed variables.
@@ -330,7 +332,7 @@ def solve_batch_active_set(a, C, c, row_mask, fixed, lo, hi, tol, dep_tol, zero_
             x_out[bi, k] = min(max(y[kk], lo[bi, k]), hi[bi, k])
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _ls_householder(A, idx, p, n, g, W, rhs, zout):
     """Least squares min ‖Σ_j z_j A[idx[j]] − g‖ by Householder QR (p ≤ n columns).
 
@@ -381,7 +383,7 @@ def _ls_householder(A, idx, p, n, g, W, rhs, zout):
     return dmin
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def nnls(A, k, n, g, lam, inP, idx, W, rhs, zls, resid):
     """Lawson–Hanson NNLS: min ‖Aᵀλ − g‖ over λ ≥ 0, generators are rows A[:k, :n].
 
@@ -477,7 +479,7 @@ def nnls(A, k, n, g, lam, inP, idx, W, rhs, zls, resid):
     return rmax
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def diagnostics_batch(a, x, C, c, row_mask, fixed, lo, hi, status, rho, act_tol,
                       active, corr, kkt, slack):
     """Per-problem diagnostics from the primal x alone (backend independent).

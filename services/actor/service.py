@@ -81,7 +81,7 @@ class ActorService(Service):
         self._chaos = (np.random.default_rng([cfg.seed, 2000 + self.actor_id, os.getpid()])
                        if cfg.actor.chaos_crash_prob > 0 else None)
         self.obs_dim: int | None = self.envs[0].obs_dim if self.envs else None   # set with the envs in run()
-        self._sent_versions: deque[tuple[int, str]] = deque(maxlen=16)
+        self._sent_chunks: deque[tuple[int, str, int]] = deque(maxlen=16)   # (newest version, incarnation, seq)
         self.steps_taken = 0   # batched steps (each K env steps)
 
     # ------------------------------------------------------------- parameters
@@ -355,18 +355,32 @@ class ActorService(Service):
         self.send(keys.trace(self.cfg.run_id, self.actor_id), "trace", body)
 
     def _pace(self) -> None:
-        """Before a new chunk: wait while ``max_chunks_ahead`` chunks already
-        used the current version (the learner has not caught up yet)."""
+        """Before a new chunk: wait while ``max_chunks_ahead`` chunks already used
+        the current version (the learner has not caught up yet), or while that
+        many of this actor's chunks are not yet settled by the learner: a chunk
+        started then would wait behind them and go stale unused."""
         acfg = self.cfg.actor
         t0 = time.monotonic()
         while not self.stop.is_set():
             p = self.params
-            ahead = sum(1 for v, inc in self._sent_versions if v >= p["version"] and inc == p["incarnation"])
-            if ahead < acfg.max_chunks_ahead or time.monotonic() - t0 > acfg.pace_timeout_s:
+            ahead = sum(1 for v, inc, _ in self._sent_chunks if v >= p["version"] and inc == p["incarnation"])
+            if (ahead < acfg.max_chunks_ahead and self._unsettled(p) < acfg.max_chunks_ahead) \
+                    or time.monotonic() - t0 > acfg.pace_timeout_s:
                 return
             self.publish_status()
             self.stop.wait(0.005)
             self._adopt_params()
+
+    def _unsettled(self, p: dict) -> int:
+        """This actor's chunks the learner has not used or dropped yet, by its
+        broadcast ``p``: those sent under its incarnation after the last one it
+        admitted (in flight or in its inbox) plus those it holds waiting."""
+        received, waiting = p.get("chunks_received"), p.get("chunks_waiting")
+        if received is None or waiting is None or self.actor_id >= len(received):
+            return 0   # a learner that does not report its backlog: the version rule alone
+        last = int(received[self.actor_id])
+        in_flight = sum(1 for _, inc, seq in self._sent_chunks if inc == p["incarnation"] and seq > last)
+        return in_flight + max(0, int(waiting[self.actor_id]))
 
     def _publish_chunk(self, buf, versions, episodes, last) -> None:
         body = {k: np.stack([np.asarray(x) for x in buf[k]]).astype(TRAJ[k].send_dtype, copy=False)
@@ -381,4 +395,4 @@ class ActorService(Service):
         })
         self.send(keys.traj(self.cfg.run_id, self.actor_id), "traj", body)
         self.chunks_sent += 1
-        self._sent_versions.append((int(max(versions)), self.params["incarnation"]))
+        self._sent_chunks.append((int(max(versions)), self.params["incarnation"], self._seq["traj"] - 1))

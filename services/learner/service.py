@@ -229,13 +229,24 @@ class LearnerService(Service):
             "version": self.version, "incarnation": self.incarnation, "method": self.cfg.method,
             "params": {k: np.asarray(v) for k, v in self.method.policy_params().items()
                        if np.asarray(v).dtype.kind in "fiub"},
-            "settings": settings})
+            "settings": settings, **self.backlog()})
         if self.version > self._published_floor:   # once per new version, before anyone can act on it
             self._published_floor = self.version
             atomic_write_text(self.paths.learner_version, json.dumps(
                 {"version": self.version, "incarnation": self.incarnation}))
         self._t_params = time.monotonic()
         self.m.version.labels(**self.labels).set(self.version)
+
+    def backlog(self) -> dict[str, np.ndarray]:
+        """Per actor id: the sequence number of its last admitted chunk (-1: none)
+        and its chunks waiting unused, broadcast with the parameters so that an
+        actor starts a chunk only when it will be used (demand pacing, see
+        ``ActorConfig.max_chunks_ahead``)."""
+        n = self.cfg.actors
+        waiting = np.bincount(np.asarray([b["actor_id"] for b in self.pending], dtype=np.int64), minlength=n)[:n]
+        received = [self.last_seq.get(f"actor/{i}", -1) for i in range(n)]
+        return {"chunks_received": np.asarray(received, dtype=np.int64),
+                "chunks_waiting": waiting.astype(np.int64)}
 
     def checkpoint(self) -> Path:
         np_state = np.random.get_state()
