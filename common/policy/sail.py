@@ -30,7 +30,7 @@ is exactly the identity.
 Step count: each step adds or drops active rows. With the default 20 steps,
 random problems with 34 rows (about half violated) reach ||grad f|| < 1e-8 for
 kappa <= 100 (tests/test_sail.py) and ~99.9% of them at kappa = 1000; the numpy
-twin stops early per sample once a full step was exact (typically 2-6 steps).
+solver stops early per sample once a full step was exact (typically 2-6 steps).
 If the budget runs out, the result is the (monotonically improved) last iterate,
 which is still a valid proposal center, just not the exact minimizer.
 
@@ -41,8 +41,12 @@ subspace that SAIL actually moves (one active row still scales the robots' norma
 component by exactly 1/(1+kappa)); rows that involve only the human become zero
 and are ignored. The human block stays exactly at its measured value.
 
-torch is imported inside the torch functions only: actor processes use the
-numpy twin and never load torch.
+numpy solver: `sail_project_np` runs the Newton loop in a compiled numba kernel
+(`common/policy/sail_kernels.py`, one loop over samples, nogil so it runs in the actor
+and learner threads side by side); `sail_project_np_reference` is the same solver as a
+vectorized numpy loop, the reference the kernel is tested against
+(tests/test_sail_kernel.py). torch is imported inside the torch functions only: actor
+processes use the numpy solver and never load torch.
 """
 from __future__ import annotations
 
@@ -51,13 +55,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from common.policy.sail_kernels import sail_newton
+
 if TYPE_CHECKING:  # pragma: no cover
     import torch
 
 
 @dataclass(frozen=True)
 class SailConfig:
-    n_newton: int = 20         # unrolled damped Newton steps (numpy twin stops early once exact)
+    n_newton: int = 20         # unrolled damped Newton steps (numpy solver stops early once exact)
     damping: str = "exact"     # "exact" (full step if exact, else exact line search) or "none" (full steps)
     row_tol: float = 1e-9      # rows with ||C_j|| <= row_tol count as zero rows
 
@@ -127,7 +133,7 @@ def _check_options(n_newton, damping):
         raise ValueError(f"sail: damping must be one of {_DAMPINGS}, got {damping!r}")
 
 
-# ----------------------------------------------------------------------------- numpy twin
+# ----------------------------------------------------------------------------- numpy (kernel and reference)
 
 
 def _line_search_np(x, dx, a, Cn, cn, kappa):
@@ -140,7 +146,7 @@ def _line_search_np(x, dx, a, Cn, cn, kappa):
         h = np.maximum(r[:, None, :] - t[..., None] * s[:, None, :], 0.0)
         return g0[:, None] + t * q[:, None] - kappa[:, None] * np.sum(h * s[:, None, :], -1)
 
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         tb = r / s
     valid = (s != 0) & (tb > 0)  # rows that switch on/off at a positive step
     tb = np.where(valid, tb, 0.0)
@@ -154,20 +160,9 @@ def _line_search_np(x, dx, a, Cn, cn, kappa):
     return np.where(slope > 0, np.clip(t, lo, hi), 1.0)
 
 
-def sail_project_np(
-    a_st,
-    C,
-    c,
-    mask,
-    kappa,
-    n_newton: int | None = None,
-    damping: str | None = None,
-    fixed_mask=None,
-    fixed_action=None,
-    config: SailConfig = _DEFAULT,
-) -> np.ndarray:
-    """Eq. (sail_projection) in numpy (float64). a_st [B,d], C [B,M,d], c [B,M], mask [B,M],
-    kappa scalar or [B] (>= 0). n_newton/damping default to `config`'s. Returns a_bar [B,d]."""
+def _prepare_np(a_st, C, c, mask, kappa, n_newton, damping, fixed_mask, fixed_action, config):
+    """Validation, fixed-block absorption and row normalization shared by the kernel and its
+    reference. Returns (a, Cn, cn, keep, kappa [B], n_newton, damping)."""
     n_newton = config.n_newton if n_newton is None else n_newton
     damping = config.damping if damping is None else damping
     a = np.asarray(a_st, dtype=np.float64)
@@ -190,11 +185,54 @@ def sail_project_np(
         a = np.where(fixed, human, a)
         C, c = absorb_fixed(C, c, fixed, human)
     Cn, cn, keep = normalize_rows(C, c, mask, config.row_tol)
+    return a, Cn, cn, keep, kappa, int(n_newton), damping
 
+
+def sail_project_np(
+    a_st,
+    C,
+    c,
+    mask,
+    kappa,
+    n_newton: int | None = None,
+    damping: str | None = None,
+    fixed_mask=None,
+    fixed_action=None,
+    config: SailConfig = _DEFAULT,
+) -> np.ndarray:
+    """Eq. (sail_projection) in numpy (float64). a_st [B,d], C [B,M,d], c [B,M], mask [B,M],
+    kappa scalar or [B] (>= 0). n_newton/damping default to `config`'s. Returns a_bar [B,d].
+
+    The Newton loop runs in the compiled kernel `sail_kernels.sail_newton` (nogil);
+    `sail_project_np_reference` is the numpy loop it is tested against."""
+    a, Cn, cn, keep, kappa, n_newton, damping = _prepare_np(
+        a_st, C, c, mask, kappa, n_newton, damping, fixed_mask, fixed_action, config)
+    # one compiled signature: C-contiguous, aligned, writeable (a read-only a_st or the
+    # broadcast kappa would otherwise be a new type, i.e. a fresh compile at run time)
+    args = [np.require(v, dt, "CAW") for v, dt in ((a, np.float64), (Cn, np.float64), (cn, np.float64),
+                                                   (keep, np.bool_), (kappa, np.float64))]
+    return sail_newton(*args, n_newton, damping == "exact")
+
+
+def sail_project_np_reference(
+    a_st,
+    C,
+    c,
+    mask,
+    kappa,
+    n_newton: int | None = None,
+    damping: str | None = None,
+    fixed_mask=None,
+    fixed_action=None,
+    config: SailConfig = _DEFAULT,
+) -> np.ndarray:
+    """`sail_project_np` with the Newton loop in vectorized numpy (the kernel's reference)."""
+    a, Cn, cn, keep, kappa, n_newton, damping = _prepare_np(
+        a_st, C, c, mask, kappa, n_newton, damping, fixed_mask, fixed_action, config)
     eye = np.eye(a.shape[1])
     x = a.copy()
     todo = np.arange(len(a))  # samples not yet at their exact minimizer
-    for _ in range(int(n_newton)):
+    for _ in range(n_newton):
         if todo.size == 0:
             break
         xs, at, Ct, ct, kt, kap = x[todo], a[todo], Cn[todo], cn[todo], keep[todo], kappa[todo]

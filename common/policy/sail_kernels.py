@@ -1,0 +1,235 @@
+"""Numba kernel of the numpy SAIL solver's damped Newton loop (common/policy/sail.py).
+
+``sail_newton`` is a loop-over-samples version of the Newton loop of
+``sail.sail_project_np_reference`` (and of its line search ``sail._line_search_np``); the
+caller (``sail.sail_project_np``) validates the inputs, absorbs the fixed (human) columns
+and normalizes the rows first, exactly as the reference does. Per sample the kernel
+follows the reference step by step: the active rows (positive residual, kept), the
+gradient, H = I + kappa C_A^T C_A (SPD, H >= I: solved by Cholesky, d = 9), the
+"exact" test (the full step keeps the active set: accept it, this sample is done, for
+both dampings), otherwise t from the closed-form exact line search (``damping="exact"``:
+the same breakpoints, the same lo / hi / mid / slope rules, t = 1 where the slope is not
+positive) or t = 1 (``damping="none"``). Sums use the same products in the same
+association (e.g. kappa * sum_j r_j C_j, then subtracted), so results agree with the
+reference to rounding; the reference's matrix products go through BLAS, whose summation
+order is not reproduced, so agreement is to rounding, not bitwise, and a residual that
+is zero to rounding may be classified differently (tests/test_sail_kernel.py).
+
+Masked and zero rows (``keep`` False) are dropped up front: in the reference they are
+zero rows with zero right-hand side, never active, and add exact zeros to every sum.
+Likewise the gradient and H sum over the active rows only (in row order), and with no
+active row the solve is skipped: H = I, and dx = -grad is what the solve gives exactly.
+The kernel loops over the batch inside the compiled function (one core, no threads) and
+releases the interpreter lock (``nogil``), so it runs in an actor or learner thread beside
+the others.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, inline="always")
+def _npmax(u, v):
+    """``np.maximum`` of two floats (NaN propagates)."""
+    if u != u:
+        return u
+    if v != v:
+        return v
+    return u if u >= v else v
+
+
+@njit(cache=True, inline="always")
+def _npmin(u, v):
+    """``np.minimum`` of two floats (NaN propagates)."""
+    if u != u:
+        return u
+    if v != v:
+        return v
+    return u if u <= v else v
+
+
+@njit(cache=True, inline="always")
+def _residuals(Ck, ck, m, x, out):
+    """``out[j] = ck[j] - Ck[j] . x`` for the first ``m`` rows."""
+    d = x.shape[0]
+    for j in range(m):
+        acc = 0.0
+        for k in range(d):
+            acc += Ck[j, k] * x[k]
+        out[j] = ck[j] - acc
+
+
+@njit(cache=True, inline="always")
+def _cholesky_solve(H, g, L, z, out):
+    """``out = -H^{-1} g`` for SPD ``H [d,d]`` (reads the lower triangle; factor in ``L``, scratch ``z``)."""
+    d = g.shape[0]
+    for j in range(d):
+        acc = H[j, j]
+        for k in range(j):
+            acc -= L[j, k] * L[j, k]
+        ljj = math.sqrt(acc)
+        L[j, j] = ljj
+        for i in range(j + 1, d):
+            acc = H[i, j]
+            for k in range(j):
+                acc -= L[i, k] * L[j, k]
+            L[i, j] = acc / ljj
+    for i in range(d):  # L z = g
+        acc = g[i]
+        for k in range(i):
+            acc -= L[i, k] * z[k]
+        z[i] = acc / L[i, i]
+    for i in range(d - 1, -1, -1):  # L^T w = z, out = -w
+        acc = z[i]
+        for k in range(i + 1, d):
+            acc -= L[k, i] * out[k]
+        out[i] = acc / L[i, i]
+    for i in range(d):
+        out[i] = -out[i]
+
+
+@njit(cache=True, inline="always")
+def _dphi(t, g0, q, kap, r, s, m):
+    """phi'(t) = g0 + t q - kappa sum_j [r_j - t s_j]_+ s_j (``_line_search_np``'s ``dphi``)."""
+    acc = 0.0
+    for j in range(m):
+        h = _npmax(r[j] - t * s[j], 0.0)
+        acc += h * s[j]
+    return g0 + t * q - kap * acc
+
+
+@njit(cache=True, inline="always")
+def _line_search(x, dx, a, Ck, r, m, kap, s, tb, valid):
+    """``sail._line_search_np`` for one sample: argmin_{t >= 0} f(x + t dx) in closed form.
+
+    ``r [m]`` the residuals at x (kept rows); ``s``, ``tb``, ``valid`` scratch [M]."""
+    d = x.shape[0]
+    for j in range(m):
+        acc = 0.0
+        for k in range(d):
+            acc += Ck[j, k] * dx[k]
+        s[j] = acc
+    g0 = 0.0
+    q = 0.0
+    for k in range(d):
+        g0 += (x[k] - a[k]) * dx[k]
+        q += dx[k] * dx[k]
+    lo = 0.0
+    hi = np.inf
+    for j in range(m):  # breakpoints: rows that switch on/off at a positive step
+        valid[j] = False
+        tb[j] = 0.0
+        if s[j] != 0.0:
+            tj = r[j] / s[j]
+            if tj > 0.0:
+                valid[j] = True
+                tb[j] = tj
+    for j in range(m):
+        if valid[j]:
+            if _dphi(tb[j], g0, q, kap, r, s, m) < 0.0:  # still descending there
+                lo = _npmax(lo, tb[j])
+            else:
+                hi = _npmin(hi, tb[j])
+    mid = 0.5 * (lo + hi) if np.isfinite(hi) else lo + 1.0
+    acc = 0.0
+    for j in range(m):  # rows penalized on (lo, hi), where phi' is linear
+        if r[j] - mid * s[j] > 0.0:
+            acc += s[j] * s[j]
+    slope = q + kap * acc
+    if not slope > 0.0:
+        return 1.0
+    t = lo - _dphi(lo, g0, q, kap, r, s, m) / slope
+    return _npmin(_npmax(t, lo), hi)
+
+
+@njit(cache=True, nogil=True)
+def sail_newton(a, Cn, cn, keep, kappa, n_newton, exact_damping):
+    """The damped Newton loop of ``sail.sail_project_np_reference`` over the batch.
+
+    a [B,d], Cn [B,M,d], cn [B,M] (fixed columns absorbed, rows normalized), keep [B,M]
+    bool, kappa [B] (>= 0), n_newton >= 0, exact_damping (``damping == "exact"``).
+    Returns x [B,d] (float64)."""
+    B, M, d = Cn.shape
+    out = np.empty((B, d))
+    Ck = np.empty((M, d))
+    ck = np.empty(M)
+    resid = np.empty(M)
+    act = np.empty(M, dtype=np.bool_)
+    ia = np.empty(M, dtype=np.int64)
+    s = np.empty(M)
+    tb = np.empty(M)
+    valid = np.empty(M, dtype=np.bool_)
+    x = np.empty(d)
+    ab = np.empty(d)
+    y = np.empty(d)
+    g = np.empty(d)
+    dx = np.empty(d)
+    H = np.empty((d, d))
+    L = np.zeros((d, d))
+    z = np.empty(d)
+    for b in range(B):
+        m = 0
+        for j in range(M):  # the kept rows, in order
+            if keep[b, j]:
+                for k in range(d):
+                    Ck[m, k] = Cn[b, j, k]
+                ck[m] = cn[b, j]
+                m += 1
+        for k in range(d):
+            ab[k] = a[b, k]
+            x[k] = a[b, k]
+        kap = kappa[b]
+        for _ in range(n_newton):
+            _residuals(Ck, ck, m, x, resid)
+            na = 0
+            for j in range(m):
+                act[j] = resid[j] > 0.0
+                if act[j]:
+                    ia[na] = j
+                    na += 1
+            for k in range(d):  # grad = (x - a) - kappa C_A^T r_A
+                acc = 0.0
+                for n in range(na):
+                    acc += resid[ia[n]] * Ck[ia[n], k]
+                g[k] = (x[k] - ab[k]) - kap * acc
+            if na == 0:  # H = I: the Cholesky solve gives exactly -grad
+                for k in range(d):
+                    dx[k] = -g[k]
+            else:  # H = I + kappa C_A^T C_A (lower triangle; the rows summed in order)
+                for i in range(d):
+                    for k in range(i + 1):
+                        H[i, k] = 0.0
+                for n in range(na):
+                    j = ia[n]
+                    for i in range(d):
+                        cji = Ck[j, i]
+                        for k in range(i + 1):
+                            H[i, k] += cji * Ck[j, k]
+                for i in range(d):
+                    for k in range(i):
+                        H[i, k] = kap * H[i, k]
+                    H[i, i] = kap * H[i, i] + 1.0
+                _cholesky_solve(H, g, L, z, dx)
+            for k in range(d):
+                y[k] = x[k] + dx[k]
+            exact = True  # the full step keeps the active set: the minimizer of this piece
+            for j in range(m):
+                acc = 0.0
+                for k in range(d):
+                    acc += Ck[j, k] * y[k]
+                if (ck[j] - acc > 0.0) != act[j]:
+                    exact = False
+                    break
+            t = 1.0
+            if exact_damping and not exact:
+                t = _line_search(x, dx, ab, Ck, resid, m, kap, s, tb, valid)
+            for k in range(d):
+                x[k] = x[k] + t * dx[k]
+            if exact:
+                break
+        for k in range(d):
+            out[b, k] = x[k]
+    return out

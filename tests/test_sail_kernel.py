@@ -1,0 +1,233 @@
+"""The compiled SAIL Newton loop (common/policy/sail_kernels.py) against its numpy reference
+``sail_project_np_reference`` (common/policy/sail.py).
+
+Both see the same validated, fixed-absorbed and normalized inputs; the kernel must give the
+reference's iterate (to rounding: the reference's matrix products go through BLAS) on
+hypothesis-drawn arrays (small, degenerate values), on random full-size batches (up to 64
+samples, 40 rows, about half violated, masked and zero rows, fixed human blocks, per-sample
+kappa, both dampings, 0 / 1 / 20 steps) and on the env's own safety rows, and its result must
+be as stationary as the reference's. The edge cases (kappa 0, no kept or violated row,
+n_newton 0, empty batch or row set) are exact.
+"""
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from common.env.batch_env import BatchEnv
+from common.env.config import EnvConfig
+from common.policy import sail_kernels
+from common.policy.sail import (SailConfig, absorb_fixed, normalize_rows, sail_project_np,
+                                sail_project_np_reference)
+
+D = 9
+HYP = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+KAPPAS = [0.0, 0.5, 1.0, 10.0, 100.0, 1000.0]
+
+
+def _both(*args, **kw):
+    return sail_project_np(*args, **kw), sail_project_np_reference(*args, **kw)
+
+
+def _tol(x, a):
+    return 1e-9 * max(1.0, float(np.max(np.abs(a), initial=0.0)), float(np.max(np.abs(x), initial=0.0)))
+
+
+def _grad_norm(x, a, C, c, mask, kappa, fixed=None, human=None):
+    """||grad f(x)|| per sample of the SAIL objective of the reduced, normalized problem."""
+    kappa = np.broadcast_to(np.asarray(kappa, dtype=np.float64), (len(a),))
+    if fixed is not None:
+        fixed = np.broadcast_to(np.asarray(fixed, dtype=bool), a.shape)
+        a = np.where(fixed, human, a)
+        C, c = absorb_fixed(C, c, fixed, human)
+    Cn, cn, _ = normalize_rows(C, c, mask)
+    r = np.maximum(cn - np.einsum("bmd,bd->bm", Cn, x), 0.0)
+    return np.linalg.norm((x - a) - kappa[:, None] * np.einsum("bm,bmd->bd", r, Cn), axis=1)
+
+
+def _check(a, C, c, mask, kappa, n_newton, damping, fixed=None, human=None, stationary=True):
+    kw = dict(n_newton=n_newton, damping=damping, fixed_mask=fixed, fixed_action=human)
+    x, ref = _both(a, C, c, mask, kappa, **kw)
+    assert x.shape == ref.shape and x.dtype == np.float64
+    np.testing.assert_allclose(x, ref, rtol=0, atol=_tol(ref, a))
+    if fixed is not None:
+        f = np.broadcast_to(fixed, a.shape)
+        assert np.array_equal(x[f], np.broadcast_to(human, a.shape)[f])   # the human block stays put
+    if stationary:
+        gx = _grad_norm(x, a, C, c, mask, kappa, fixed, human)
+        gr = _grad_norm(ref, a, C, c, mask, kappa, fixed, human)
+        scale = 1.0 + np.max(np.abs(a)) + np.max(np.abs(np.asarray(kappa)), initial=0.0)
+        assert np.all(gx <= gr * (1 + 1e-6) + 1e-11 * scale), (gx.max(), gr.max())
+    return x, ref
+
+
+# ----------------------------------------------------------------------------- drawn arrays
+
+coords = st.floats(-2.0, 2.0, allow_nan=False, allow_infinity=False)
+arrays = st.tuples(st.integers(1, 4), st.integers(0, 12)).flatmap(
+    lambda bm: st.tuples(
+        hnp.arrays(np.float64, (bm[0], D), elements=st.floats(-1, 1)),
+        hnp.arrays(np.float64, (bm[0], bm[1], D), elements=coords),
+        hnp.arrays(np.float64, (bm[0], bm[1]), elements=coords),
+        hnp.arrays(bool, (bm[0], bm[1])),           # masked rows
+        hnp.arrays(bool, (bm[0], bm[1])),           # zero rows
+        hnp.arrays(bool, D),                        # fixed (human) columns
+        hnp.arrays(np.float64, (bm[0], D), elements=st.floats(-1, 1)),
+    ))
+
+
+@HYP
+@given(arrays, st.sampled_from(KAPPAS), st.sampled_from([0, 1, 2, 20]), st.sampled_from(["exact", "none"]),
+       st.booleans())
+def test_kernel_matches_reference_on_drawn_arrays(arrs, kappa, n_newton, damping, use_fixed):
+    a, C, c, mask, zero, fixed, human = arrs
+    C = C * (~zero)[..., None]
+    _check(a, C, c, ~mask, kappa, n_newton, damping, fixed if use_fixed else None, human if use_fixed else None,
+           stationary=damping == "exact" and n_newton == 20)
+
+
+# ----------------------------------------------------------------------------- random full-size batches
+
+def _random_problem(rng, B, M):
+    """B problems with M rows (row scales 1e-3..1e3), about half violated at a; some rows
+    masked or zero; per-sample kappa drawn from KAPPAS."""
+    a = rng.uniform(-1, 1, (B, D))
+    C = rng.normal(size=(B, M, D)) * 10.0 ** rng.uniform(-3, 3, (B, M, 1))
+    C *= rng.random((B, M, 1)) > 0.1                                         # zero rows
+    c = np.einsum("bmd,bd->bm", C, a) + rng.normal(size=(B, M)) * np.linalg.norm(C, axis=-1)
+    mask = rng.random((B, M)) < 0.85                                         # masked rows
+    return a, C, c, mask
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.integers(0, 2**31), st.integers(1, 64), st.integers(1, 40), st.sampled_from(KAPPAS + ["mixed"]),
+       st.sampled_from([0, 1, 20]), st.sampled_from(["exact", "none"]), st.sampled_from([None, "one", "rows"]))
+def test_kernel_matches_reference_on_random_problems(seed, B, M, kappa, n_newton, damping, fixed_kind):
+    rng = np.random.default_rng(seed)
+    a, C, c, mask = _random_problem(rng, B, M)
+    if kappa == "mixed":
+        kappa = rng.choice(KAPPAS, B)
+    fixed = human = None
+    if fixed_kind == "one":            # one carrier's block, shared by the batch ([d])
+        fixed = np.zeros(D, bool)
+        fixed[3 * int(rng.integers(3)):][:3] = True
+        human = rng.uniform(-1, 1, (B, D))
+    elif fixed_kind == "rows":         # a per-sample block ([B,d]); some samples without one
+        fixed = np.zeros((B, D), bool)
+        for b in range(B):
+            k = int(rng.integers(4))
+            if k < 3:
+                fixed[b, 3 * k:3 * k + 3] = True
+        human = rng.uniform(-1, 1, (B, D))
+    _check(a, C, c, mask, kappa, n_newton, damping, fixed, human,
+           stationary=damping == "exact" and n_newton == 20)
+
+
+@pytest.mark.parametrize("kappa", [10.0, 100.0, 1000.0])
+def test_default_config_converges_like_reference(kappa):
+    """The default (20 exact-damped steps) on 256 harsh problems, 34 rows, ~half violated:
+    the same centers and the same stationarity as the reference."""
+    rng = np.random.default_rng(int(kappa) + 1)
+    a, C, c, mask = _random_problem(rng, 256, 34)
+    x, ref = _check(a, C, c, mask, kappa, None, None)
+    g = _grad_norm(x, a, C, c, mask, kappa)
+    if kappa <= 100:
+        assert g.max() < 1e-8
+
+
+# ----------------------------------------------------------------------------- edge cases (exact)
+
+def test_edge_cases_are_exact():
+    rng = np.random.default_rng(0)
+    B, M = 6, 8
+    a, C, c = rng.uniform(-1, 1, (B, D)), rng.normal(size=(B, M, D)), rng.normal(size=(B, M)) + 3.0
+    ones, zeros = np.ones((B, M), bool), np.zeros((B, M), bool)
+    cases = [
+        (a, C, c, ones, 0.0, 20),                   # kappa 0
+        (a, C, c, zeros, 10.0, 20),                 # every row masked
+        (a, np.zeros_like(C), c, ones, 10.0, 20),   # every row zero
+        (a, C, c, ones, 10.0, 0),                   # no step
+        (a, C, np.einsum("bmd,bd->bm", C, a) - 1.0, ones, 1e3, 20),   # no row violated
+        (a, C[:, :0], c[:, :0], ones[:, :0], 10.0, 20),               # no rows at all
+    ]
+    for damping in ("exact", "none"):
+        for args in cases:
+            x, ref = _both(*args[:5], n_newton=args[5], damping=damping)
+            assert np.array_equal(x, a) and np.array_equal(ref, a)
+    x, ref = _both(a[:0], C[:0], c[:0], ones[:0], 10.0)   # empty batch
+    assert x.shape == ref.shape == (0, D)
+    # n_newton 0 with a human block: the block is replaced, nothing else moves
+    fixed, human = np.zeros(D, bool), rng.uniform(-1, 1, (B, D))
+    fixed[:3] = True
+    x, ref = _both(a, C, c, ones, 10.0, n_newton=0, fixed_mask=fixed, fixed_action=human)
+    assert np.array_equal(x, ref) and np.array_equal(x, np.where(fixed, human, a))
+
+
+def test_kappa_and_inputs_broadcast_and_validate_like_reference():
+    rng = np.random.default_rng(1)
+    a, C, c, mask = _random_problem(rng, 8, 12)
+    kappa = rng.choice(KAPPAS, 8)
+    x, ref = _both(a.T.copy().T, np.asfortranarray(C), c[:, ::-1][:, ::-1], mask, kappa)   # odd layouts
+    np.testing.assert_allclose(x, ref, rtol=0, atol=_tol(ref, a))
+    x1, _ = _both(a, C, c, mask, 10.0)
+    x2, _ = _both(a, C, c, mask, np.full(8, 10.0))
+    assert np.array_equal(x1, x2)
+    for bad in (dict(kappa=-1.0), dict(n_newton=-1), dict(damping="bogus")):
+        kw = dict(kappa=1.0) | bad
+        for fn in (sail_project_np, sail_project_np_reference):
+            with pytest.raises(ValueError):
+                fn(a, C, c, mask, **kw)
+
+
+def test_kernel_releases_the_gil_and_compiles_once():
+    """nogil (it runs in actor / learner threads); read-only, broadcast, strided or float32
+    inputs and scalar or [B] kappa all reach the one compiled signature (no compile at run time)."""
+    assert sail_kernels.sail_newton.targetoptions.get("nogil") is True
+    rng = np.random.default_rng(2)
+    a, C, c, mask = _random_problem(rng, 5, 7)
+    sail_project_np(a, C, c, mask, 10.0)
+    n_sig = len(sail_kernels.sail_newton.signatures)
+    ro = a.copy()
+    ro.flags.writeable = False
+    fixed = np.zeros(D, bool)
+    fixed[6:] = True
+    for args, kw in [((ro, C, c, mask, np.full(5, 3.0)), {}),
+                     ((np.broadcast_to(a[:1], a.shape), C.astype(np.float32), c[:, ::1], mask, 1), {}),
+                     ((a, np.asfortranarray(C), c, mask, np.broadcast_to(2.0, (5,))),
+                      dict(fixed_mask=fixed, fixed_action=ro, n_newton=3, damping="none"))]:
+        x, ref = _both(*args, **kw)
+        np.testing.assert_allclose(x, ref, rtol=0, atol=_tol(ref, a))
+    assert len(sail_kernels.sail_newton.signatures) == n_sig
+
+
+# ----------------------------------------------------------------------------- env rows
+
+def _env_rows(name, human_slot, steps, k=8, seed=0):
+    """(a_st, C, c, row_mask, fixed_mask, human_action) of a BatchEnv after each of ``steps``
+    steps. Each env keeps a drift (a random constant action added to half the scripted one),
+    so teams press against walls and the proposals a_st (the executed actions) violate some
+    rows, as a policy's do before the shield."""
+    env = BatchEnv(EnvConfig(name, human_slot=human_slot), num_envs=k, seed=seed)
+    out = env.reset()
+    rng = np.random.default_rng(seed)
+    drift = rng.uniform(-1, 1, (k, D))
+    drift[:, 2::3] *= 0.2
+    for t in range(max(steps) + 1):
+        act = np.clip(0.5 * env.scripted_actions() + drift + rng.normal(0.0, 0.2, (k, D)), -1.0, 1.0)
+        if t in steps:
+            yield act, out["C"], out["c"], out["row_mask"], out["fixed_mask"], out["human_action"]
+        out = env.step(act)
+
+
+@pytest.mark.parametrize("name,human_slot", [("narrow_gate", None), ("maze", 1)])
+def test_kernel_matches_reference_on_env_rows(name, human_slot):
+    seen_active = 0
+    for a, C, c, mask, fixed, human in _env_rows(name, human_slot, steps=(0, 6, 12, 24)):
+        fm = None if human_slot is None else fixed
+        for kappa in (1.0, 10.0, 1000.0):
+            for damping in ("exact", "none"):
+                _check(a, C, c, mask, kappa, SailConfig().n_newton, damping, fm, human, stationary=damping == "exact")
+        x = sail_project_np(a, C, c, mask, 10.0, fixed_mask=fm, fixed_action=human)
+        seen_active += int(np.sum(np.any(x != a, axis=1)))
+    assert seen_active > 0   # SAIL did move some centers on these rows
