@@ -42,8 +42,34 @@ class SafetyRows:
     def select(self, idx) -> "SafetyRows":
         return SafetyRows(*(np.asarray(getattr(self, k))[idx] for k in self.FIELDS))
 
+    @property
+    def n_rows(self) -> int:
+        """M, the number of row slots per problem."""
+        return int(np.shape(self.C)[1])
+
+    def padded(self, M: int) -> "SafetyRows":
+        """The same constraints in ``M >= self.n_rows`` row slots: the added slots are
+        zero rows (C = 0, c = 0) with row_mask False, which every consumer ignores.
+        Returns ``self`` when nothing is to add."""
+        C, c, mask = np.asarray(self.C), np.asarray(self.c), np.asarray(self.row_mask)
+        B, m = C.shape[:2]
+        if M < m:
+            raise ValueError(f"cannot pad {m} rows down to {M}")
+        if M == m:
+            return self
+        extra = M - m
+        return SafetyRows(np.concatenate([C, np.zeros((B, extra) + C.shape[2:], C.dtype)], axis=1),
+                          np.concatenate([c, np.zeros((B, extra), c.dtype)], axis=1),
+                          np.concatenate([mask, np.zeros((B, extra), mask.dtype)], axis=1),
+                          self.fixed_mask)
+
     @staticmethod
-    def concat(parts: list["SafetyRows"]) -> "SafetyRows":
+    def concat(parts: list["SafetyRows"], pad: bool = False) -> "SafetyRows":
+        """Stack along the batch. ``pad``: parts may have different M; all are padded
+        (``padded``) to the largest first. Without it their M must agree."""
+        if pad:
+            M = max(p.n_rows for p in parts)
+            parts = [p.padded(M) for p in parts]
         return SafetyRows(*(np.concatenate([np.asarray(getattr(p, k)) for p in parts]) for k in SafetyRows.FIELDS))
 
     def residual(self, a: np.ndarray) -> np.ndarray:

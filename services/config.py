@@ -74,6 +74,10 @@ class ActorConfig:
     # rows met to this tolerance (relative to max(1, ||C_i||)), box, human block untouched.
     # The exact QP meets rows to 1e-10; 1e-6 leaves room for float64 round-off only.
     verify_tol: float = 1e-6
+    # Shield queries carry only the rows the action box does not satisfy everywhere
+    # (common/shield/prune.py: exact, a dropped row can never be active or violated);
+    # most wall rows are far from binding, and the rows are most of a query's bytes.
+    prune_rows: bool = True
     unhealthy_after_s: float = 10.0    # no shield answer this long -> status "unhealthy"
     exit_on_unhealthy: bool = False    # supervised mode: exit(3) so the supervisor sees it
     params_wait_s: float = 60.0        # max wait for the first parameters before unhealthy

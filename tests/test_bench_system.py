@@ -201,11 +201,14 @@ def test_command_line_and_table():
     result = {"physics_bound_env_steps_per_s": 400.0, "system": {"sage": {"1": one}},
               "shards": {"2": {"4": {"actor_env_steps_per_s": 900.0, "qps_served": 880.0, "qps_per_shard": {}}}},
               "shield_rtt_ms": {"8": {"p50": 3.9, "p99": 4.3, "inprocess_p50": 3.4, "inprocess_p99": 3.9,
-                                      "local_qp_p50": 0.07, "local_qp_p99": 0.1}},
+                                      "local_qp_p50": 0.07, "local_qp_p99": 0.1, "pruned_p50": 0.5,
+                                      "pruned_p99": 0.9, "bytes": 91000, "pruned_bytes": 9100}},
               "param_broadcast_ms": {"p50": 2.5, "p99": 4.0, "inprocess_p50": 0.9, "inprocess_p99": 1.1,
                                      "bytes": 27547},
-              "actor_steps_per_s": {"shield_service": 175.0, "local_qp": 212.0}, "ratio_vs_local_qp": 0.83,
+              "actor_steps_per_s": {"shield_service": 175.0, "local_qp": 212.0, "shield_service_pipelined": 170.0,
+                                    "shield_service_full_rows": 150.0}, "ratio_vs_local_qp": 0.83,
               "ratio_target": 0.7}
     table = summary_table(result)
-    assert "ratio 0.83" in table and "B=8" in table and "27547 B" in table
+    assert "ratio 0.83" in table and "B=8" in table and "27547 B" in table and "91000 / 9100" in table
+    assert "full rows 150.0" in table
     assert "sage" in table and "(0.30,  0.40)" in table and "2 shard(s), 4 actors" in table

@@ -28,8 +28,12 @@ to its in-process twin.
 * ``ratio_vs_local_qp``: steps/s of one actor process with the shield service
   in the loop divided by the same actor with a local in-process QP call
   (``LocalQPActor``, synchronous) -- no learner, parameters from the bench;
-  ``pipelining_gain``: the same actor pipelined (``actor.pipeline``, the
-  default) over synchronous, both with the shield service.
+  both with the default settings (synchronous, pruned rows: the local QP
+  solves the same pruned rows). ``pipelining_gain``: the same actor pipelined
+  (``actor.pipeline``) over synchronous, ``row_pruning_gain``: pruned rows
+  (``actor.prune_rows``, the default) over full rows, both with the shield
+  service. ``shield_rtt_ms`` gives full and pruned requests' round trips and
+  sizes in bytes.
 
 Child entry points of the bench (also run under the supervisor):
 ``python -m sage.bench.system local-actor --config RUN.json --actor-id I``
@@ -58,6 +62,7 @@ from common.algos.registry import METHODS
 from common.env.batch_env import BatchEnv
 from common.env.scenarios import SCENARIOS
 from common.safety_rows import SafetyRows
+from common.shield.prune import drop_box_redundant_rows
 from common.shield.qp import shield_actions
 from common.spec import JOINT_ACT_DIM
 from common.transport import Bus
@@ -194,7 +199,9 @@ class LocalQPActor(ActorService):
 
     def filter_actions(self, a_prop, rows: SafetyRows, asked=None):
         t0 = time.perf_counter()
-        res = shield_actions(a_prop, rows, backend=self.cfg.shield.backend)
+        # the same QP the shield service is asked (actor.prune_rows), so the ratio is the service's cost
+        sent = drop_box_redundant_rows(a_prop, rows) if self.cfg.actor.prune_rows else rows
+        res = shield_actions(a_prop, sent, backend=self.cfg.shield.backend)
         self.rtt.add(time.perf_counter() - t0)
         return np.asarray(res.a_exec, dtype=np.float64), res.status
 
@@ -308,6 +315,12 @@ class SystemBench:
         full = {"a_prop": np.random.default_rng(self.cfg.seed).uniform(-1, 1, size=(n, JOINT_ACT_DIM)),
                 **SafetyRows.of(out).as_dict()}
         return {B: {k: np.ascontiguousarray(v[:B]) for k, v in full.items()} for B in self.cfg.batch_sizes}
+
+    @staticmethod
+    def pruned(batches: dict[int, dict]) -> dict[int, dict]:
+        """The same requests as an actor sends them (``actor.prune_rows``)."""
+        return {B: {"a_prop": b["a_prop"], **drop_box_redundant_rows(b["a_prop"], SafetyRows.of(b)).as_dict()}
+                for B, b in batches.items()}
 
     def _learner(self, cfg, bus):
         """The real learner service object, used only for ``publish_params``."""
@@ -427,6 +440,7 @@ class SystemBench:
         """Router + shield process + echo child: shield round trips, parameter
         broadcasts, then one actor process with the shield vs with a local QP."""
         batches = self.requests()
+        pruned = self.pruned(batches)
         local = self._local_qp(batches)
         port = free_tcp_port()
         connect = [f"tcp/127.0.0.1:{port}"]
@@ -439,6 +453,7 @@ class SystemBench:
         try:
             self._wait_shield(bus, cfg.run_id, self.check)
             rtt = self._rtt(bus, cfg.run_id, batches)
+            rtt_pruned = self._rtt(bus, cfg.run_id, pruned)
             learner = self._learner(cfg, bus)
             params = self._broadcast(bus, learner, cfg.run_id, local=False)
             # small (heartbeat-sized) and shield-request-sized messages
@@ -450,11 +465,13 @@ class SystemBench:
             meter = StepMeter(cfg.run_id)
             bus.subscribe(keys.status_all(cfg.run_id), meter.on_status)
             feeder = _Repeater(learner.publish_params, 0.5)  # actors wait for parameters
-            sync_path = replace(cfg, actor=replace(cfg.actor, pipeline=False)).save(run / "config-sync.json")
+            piped_path = replace(cfg, actor=replace(cfg.actor, pipeline=True)).save(run / "config-pipelined.json")
+            full_path = replace(cfg, actor=replace(cfg.actor, prune_rows=False)).save(run / "config-full-rows.json")
             actor = {"local_qp": [sys.executable, "-m", "sage.bench.system", "local-actor",
                                   "--config", str(path), "--actor-id", "0"],
                      "shield_service": service_specs(path, roles=("actor",), actor_ids=[0])[0].argv,
-                     "shield_service_sync": service_specs(sync_path, roles=("actor",), actor_ids=[0])[0].argv}
+                     "shield_service_pipelined": service_specs(piped_path, roles=("actor",), actor_ids=[0])[0].argv,
+                     "shield_service_full_rows": service_specs(full_path, roles=("actor",), actor_ids=[0])[0].argv}
             rates = {}
             try:
                 for kind, argv in actor.items():
@@ -487,6 +504,10 @@ class SystemBench:
         table = {str(B): {"p50": rtt[B]["p50"], "p99": rtt[B]["p99"],
                           "inprocess_p50": rtt_in[B]["p50"], "inprocess_p99": rtt_in[B]["p99"],
                           "local_qp_p50": local[B]["p50"], "local_qp_p99": local[B]["p99"],
+                          "pruned_p50": rtt_pruned[B]["p50"], "pruned_p99": rtt_pruned[B]["p99"],
+                          "bytes": len(wire.encode("shield_req", batches[B], run_id=cfg.run_id, sender="a", seq=0)),
+                          "pruned_bytes": len(wire.encode("shield_req", pruned[B], run_id=cfg.run_id, sender="a",
+                                                          seq=0)),
                           "requests": rtt[B]["n"]} for B in batches}
         return {"shield_rtt_ms": table,
                 "param_broadcast_ms": {"p50": params["p50"], "p99": params["p99"],
@@ -495,7 +516,8 @@ class SystemBench:
                 "router_msgs_per_s": router,
                 "actor_steps_per_s": rates,
                 "ratio_vs_local_qp": rates["shield_service"] / rates["local_qp"],
-                "pipelining_gain": rates["shield_service"] / rates["shield_service_sync"]}
+                "pipelining_gain": rates["shield_service_pipelined"] / rates["shield_service"],
+                "row_pruning_gain": rates["shield_service"] / rates["shield_service_full_rows"]}
 
     # ------------------------------------------------------------- phase 2: the whole system
     def system_phase(self, method: str) -> dict:
@@ -719,17 +741,19 @@ def summary_table(r: dict) -> str:
     for k, by_n in r["shards"].items():
         for n, v in by_n.items():
             lines.append(f"  {k} shard(s), {n} actors {v['actor_env_steps_per_s']:12.1f} {v['qps_served']:12.1f}")
-    lines.append("shield RTT ms     p50 / p99 (process)   p50 / p99 (in-process)   local QP p50 / p99")
+    lines.append("shield RTT ms     p50 / p99 (process)   p50 / p99 (in-process)   local QP p50 / p99"
+                 "   pruned p50 / p99   bytes full / pruned")
     for B, v in r["shield_rtt_ms"].items():
         lines.append(f"  B={B:<5}        {v['p50']:7.3f} / {v['p99']:7.3f}     {v['inprocess_p50']:7.3f} / "
-                     f"{v['inprocess_p99']:7.3f}        {v['local_qp_p50']:7.3f} / {v['local_qp_p99']:7.3f}")
+                     f"{v['inprocess_p99']:7.3f}        {v['local_qp_p50']:7.3f} / {v['local_qp_p99']:7.3f}"
+                     f"   {v['pruned_p50']:7.3f} / {v['pruned_p99']:7.3f}   {v['bytes']} / {v['pruned_bytes']}")
     pb = r["param_broadcast_ms"]
     lines.append(f"param broadcast   p50 {pb['p50']:.3f} ms  p99 {pb['p99']:.3f} ms  "
                  f"(in-process {pb['inprocess_p50']:.3f} / {pb['inprocess_p99']:.3f}; {pb['bytes']} B)")
     a = r["actor_steps_per_s"]
-    lines.append(f"one actor steps/s: shield service {a['shield_service']:.1f} (synchronous "
-                 f"{a.get('shield_service_sync', float('nan')):.1f}), local QP {a['local_qp']:.1f}, "
-                 f"ratio {r['ratio_vs_local_qp']:.2f} (target >= {r['ratio_target']})")
+    lines.append(f"one actor steps/s: shield service {a['shield_service']:.1f} (pipelined "
+                 f"{a['shield_service_pipelined']:.1f}, full rows {a['shield_service_full_rows']:.1f}), "
+                 f"local QP {a['local_qp']:.1f}, ratio {r['ratio_vs_local_qp']:.2f} (target >= {r['ratio_target']})")
     return "\n".join(lines)
 
 

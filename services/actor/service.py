@@ -34,6 +34,7 @@ from common.metrics_prom import Window
 from common.policy.rollout import propose as default_propose
 from common.policy.tree import InvalidParams, ValidatedParams
 from common.safety_rows import SafetyRows
+from common.shield.prune import drop_box_redundant_rows
 from common.shield.verify import verify_answer
 from common.spec import CARRIER_ACT_DIM, N_CARRIERS
 from services.base import RateMeter, Service
@@ -143,8 +144,11 @@ class ActorService(Service):
     # ------------------------------------------------------------- shield
     def ask_shield(self, a_prop: np.ndarray, rows: SafetyRows) -> tuple:
         """Send the query for ``a_prop`` now; its replies queue up until
-        ``filter_actions(..., asked=...)`` collects them."""
-        payload = self.encode("shield_req", {"a_prop": a_prop, **rows.as_dict()})
+        ``filter_actions(..., asked=...)`` collects them. Rows the action box
+        satisfies everywhere are not sent (``actor.prune_rows``; exact, the QP
+        never needs them); the answer is still checked against all of them."""
+        sent = drop_box_redundant_rows(a_prop, rows) if self.cfg.actor.prune_rows else rows
+        payload = self.encode("shield_req", {"a_prop": a_prop, **sent.as_dict()})
         return payload, time.perf_counter(), self.bus.replies(self.shield_key, payload,
                                                                timeout=self.cfg.actor.shield_timeout_s)
 

@@ -5,7 +5,8 @@ micro-batches its actors' CBF-QP requests into one ``solve_cbf_qp`` call
 
 Batching rule: after the first waiting request arrives, keep collecting for
 at most ``shield.window_s`` or until ``shield.max_batch`` QP rows are queued,
-then solve everything in one call. Every query is finished (dropped) exactly
+then solve everything in one call (requests of different row counts M are
+padded to the largest with masked-out zero rows). Every query is finished (dropped) exactly
 once, with a reply or a ``reply_err`` carrying ``"<reason>: <detail>"``.
 """
 from __future__ import annotations
@@ -128,23 +129,27 @@ class ShieldService(Service):
         return msg.body["a_prop"].shape[0]
 
     def handle(self, batch: list[Request], good: list[tuple[Request, dict]]) -> None:
-        """Solve the admitted requests in groups of equal M and reply; finishes
-        every request of the batch, whatever happens."""
+        """Solve all admitted requests in one call, their rows padded to the
+        largest M (requests of pruned rows differ in M), and reply per request;
+        finishes every request of the batch, whatever happens."""
         t0 = time.perf_counter()
         try:
-            groups: dict[int, list[tuple[Request, dict]]] = {}
-            for item in good:
-                groups.setdefault(item[1]["C"].shape[1], []).append(item)
-            for items in groups.values():
-                self._solve_group(items)
+            if good and not self._solve_group(good, isolate=len(good) > 1):
+                # the joint solve failed: solve each request alone, so one bad
+                # request cannot take the others' answers with it
+                for item in good:
+                    self._solve_group([item])
         finally:
             for req in batch:
                 req.finish()  # idempotent; no query is ever left open
             self.busy_s += time.perf_counter() - t0
 
-    def _solve_group(self, items: list[tuple[Request, dict]]) -> None:
+    def _solve_group(self, items: list[tuple[Request, dict]], isolate: bool = False) -> bool:
+        """One solve for ``items`` (rows padded to their largest M) and the replies.
+        On a solver failure: with ``isolate`` return False without replying (the
+        caller retries request by request), else reply the error to every asker."""
         a_prop = np.concatenate([b["a_prop"] for _, b in items])
-        rows = SafetyRows.concat([SafetyRows.of(b) for _, b in items])
+        rows = SafetyRows.concat([SafetyRows.of(b) for _, b in items], pad=True)
         B = a_prop.shape[0]
         t0 = time.perf_counter()
         try:
@@ -153,11 +158,15 @@ class ShieldService(Service):
             if a_exec.shape != a_prop.shape or not np.isfinite(a_exec).all():
                 raise ValueError(f"solver returned a_exec {a_exec.shape}, finite={np.isfinite(a_exec).all()}")
         except Exception as exc:  # noqa: BLE001 - reported to every asker, loop goes on
+            if isolate:
+                self.log.warning("joint solve of %d rows (%d requests) failed, solving them one by one: %s",
+                                 B, len(items), exc)
+                return False
             reason = "invalid_input" if isinstance(exc, ValueError) else "solver_error"
             self.log.warning("solve of %d rows failed: %s", B, exc)
             for req, _ in items:
                 self._error(req, reason, str(exc))
-            return
+            return True
         dt = time.perf_counter() - t0
         status = np.asarray(res.status, dtype=np.int32)
         corr = np.asarray(res.correction_norm, dtype=np.float64)
@@ -183,6 +192,7 @@ class ShieldService(Service):
                     "slack": slack[sl], "batch_size": B, "solve_s": dt}))
             except Exception as exc:  # noqa: BLE001 - e.g. asker gone
                 self.log.warning("reply failed: %s", exc)
+        return True
 
     def _error(self, req: Request, reason: str, detail: str) -> None:
         self.m.shield_errors.labels(**self.labels, reason=reason).inc()
