@@ -29,7 +29,8 @@ Parameters travel as a flat dict[str, np.ndarray] (`export_params`): keys
 `log_std` is the per-carrier proposal spread (common/policy/proposal.py); it lives in
 the tree so it travels with the tree parameters.
 
-This module is numpy only (`tree_forward_np`, `team_forward_np`,
+This module is numpy only (`tree_forward_np`, `team_forward_np` — a numba
+kernel beside its numpy reference `team_forward_np_reference` —,
 `validate_params`): actor processes never import torch. The torch classes
 (`HardObliqueTree`, `TeamPolicy`) are in `common/policy/tree_torch.py`.
 """
@@ -41,6 +42,8 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+
+from common.policy.tree_kernels import team_forward_kernel
 
 FORMAT_VERSION = 1
 PARAM_NAMES = ("W", "b", "K", "beta", "log_std", "c_a", "s_a")
@@ -114,6 +117,7 @@ class ValidatedParams(dict):
     def __init__(self, params: Mapping[str, np.ndarray]):
         super().__init__(params)
         self.spec = validate_params(params)
+        self.stacked = stack_team_arrays(self, self.spec)   # what the forward kernel reads, built once
 
 
 def validate_params(params: Mapping[str, np.ndarray]) -> ParamsSpec:
@@ -213,8 +217,31 @@ def tree_forward_np(params_i: Mapping[str, np.ndarray], obs: np.ndarray):
     return c_a + s_a * np.tanh(u), leaf, nodes, sides
 
 
+def stack_team_arrays(params: Mapping[str, np.ndarray], spec: ParamsSpec) -> tuple:
+    """The carriers' arrays stacked as the forward kernel reads them, float64 and
+    contiguous: unit split vectors w [N,2^D-1,O], b, K, beta, c_a, s_a."""
+    def stack(name):
+        return np.ascontiguousarray(np.stack([np.asarray(params[f"carrier_{i}/{name}"], dtype=np.float64)
+                                              for i in range(spec.n_agents)]))
+
+    W = stack("W")
+    w = np.ascontiguousarray(W / np.linalg.norm(W, axis=2, keepdims=True))
+    return w, stack("b"), stack("K"), stack("beta"), stack("c_a"), stack("s_a")
+
+
 def team_forward_np(params: Mapping[str, np.ndarray], obs: np.ndarray):
-    """All carriers: obs [B,N,obs_dim] -> (a_st [B,N*A], leaves [B,N], nodes [B,N,D], sides [B,N,D])."""
+    """All carriers: obs [B,N,obs_dim] -> (a_st [B,N*A], leaves [B,N], nodes [B,N,D], sides [B,N,D]).
+    The compiled kernel (common/policy/tree_kernels.py); ``team_forward_np_reference`` is its numpy twin."""
+    spec = validate_params(params)
+    obs = np.asarray(obs)
+    if obs.ndim != 3 or obs.shape[1:] != (spec.n_agents, spec.obs_dim):
+        raise ValueError(f"team: obs must be [B,{spec.n_agents},{spec.obs_dim}], got {obs.shape}")
+    stacked = params.stacked if isinstance(params, ValidatedParams) else stack_team_arrays(params, spec)
+    return team_forward_kernel(np.ascontiguousarray(obs, dtype=np.float64), *stacked, spec.depth)
+
+
+def team_forward_np_reference(params: Mapping[str, np.ndarray], obs: np.ndarray):
+    """Numpy reference of ``team_forward_np``: each carrier's ``tree_forward_np``."""
     spec = validate_params(params)
     obs = np.asarray(obs)
     if obs.ndim != 3 or obs.shape[1:] != (spec.n_agents, spec.obs_dim):
