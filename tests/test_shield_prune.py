@@ -3,7 +3,6 @@ service solves requests of different row counts M in one padded call."""
 import inspect
 import sys
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +13,7 @@ from hypothesis.extra.numpy import arrays
 
 sys.path.insert(0, str(Path(__file__).parent))
 from services_fakes import fake_solve  # noqa: E402
+from test_services import make_cfg, wait_for  # noqa: E402
 
 from common import keys, wire  # noqa: E402
 from common.safety_rows import SafetyRows  # noqa: E402
@@ -27,7 +27,7 @@ from common.shield.qp import (  # noqa: E402
     solve_cbf_qp,
 )
 from common.transport import Bus  # noqa: E402
-from services.config import ShieldConfig, TrainConfig  # noqa: E402
+from services.config import ShieldConfig  # noqa: E402
 from services.shield.service import ShieldService  # noqa: E402
 
 D = 9
@@ -319,21 +319,6 @@ def test_real_env_rows_keep_every_active_row_and_shrink_the_message(scenario, hu
 
 
 # ----------------------------------------------------------------- the shield service
-def _cfg(tmp_path, **kw):
-    base = dict(run_id="tp", run_dir=str(tmp_path / "run"), updates=3, chunk_len=6, actors=2,
-                envs_per_actor=2, checkpoint_every=2, status_period_s=0.1)
-    base.update(kw)
-    return TrainConfig(**base).validate()
-
-
-def _wait(pred, timeout=60.0):
-    t0 = time.monotonic()
-    while not pred():
-        if time.monotonic() - t0 > timeout:
-            raise AssertionError("condition not reached")
-        time.sleep(0.01)
-
-
 @pytest.fixture
 def bus():
     b = Bus.open(inprocess=True)
@@ -346,7 +331,7 @@ def _serve(cfg, bus, solve):
     shield = ShieldService(cfg, bus, stop=stop, solve=solve)
     th = threading.Thread(target=shield.run, daemon=True)
     th.start()
-    _wait(lambda: shield.state == "running")
+    wait_for(lambda: shield.state == "running", timeout=60.0)
     return shield, stop, th
 
 
@@ -377,7 +362,7 @@ def _pruned_requests():
 
 
 def test_shield_service_solves_requests_of_different_m_in_one_call(tmp_path, bus):
-    cfg = _cfg(tmp_path, shield=ShieldConfig(max_batch=1000, window_s=30.0))  # closes at 2 askers
+    cfg = make_cfg(tmp_path, run_id="tp", shield=ShieldConfig(max_batch=1000, window_s=30.0))  # closes at 2 askers
     calls = []
 
     def spy(a_prop, rows):
@@ -404,7 +389,7 @@ def test_shield_service_solves_requests_of_different_m_in_one_call(tmp_path, bus
 
 
 def test_shield_service_isolates_a_failing_request_after_a_failed_joint_solve(tmp_path, bus):
-    cfg = _cfg(tmp_path, shield=ShieldConfig(max_batch=1000, window_s=30.0))
+    cfg = make_cfg(tmp_path, run_id="tp", shield=ShieldConfig(max_batch=1000, window_s=30.0))
     reqs = _pruned_requests()
     reqs[1]["a_prop"] = np.full_like(reqs[1]["a_prop"], 0.125)   # the marker the solver refuses
     calls = []
