@@ -3,7 +3,11 @@
 ``build_rows`` vs ``build_rows_reference``, ``grasp_strain`` vs its reference, ``WallSet`` queries vs their
 ``*_reference`` methods, ``Route.project`` vs ``project_reference``, and a whole
 ``BatchEnv`` rollout (with resets, drops and the human slot) against a twin env
-whose snapshot/observation/row code is patched to the numpy references.
+with those entry points patched to their references. ``BatchEnv.step`` now calls
+the fused kernels of ``common/env/kernels.py`` directly, so the rollout twin
+exercises the references only where the env still goes through those entry
+points; the whole rollout with every kernel swapped for its reference is in
+tests/test_env_kernels.py.
 """
 import numpy as np
 import pytest
