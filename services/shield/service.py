@@ -80,10 +80,9 @@ class ShieldService(Service):
             good: list[tuple[Request, dict]] = []
             rows = self._admit(first, good)
             deadline = time.perf_counter() + self.cfg.shield.window_s
-            # Every actor of this shard has at most one request waiting (a
-            # pipelined actor sends its second group's only after the first
-            # group's answer), so once one per actor is queued nobody else is
-            # coming: close the window early.
+            # A synchronous actor has at most one request waiting, so once one
+            # per actor of this shard is queued nobody else is coming: close the
+            # window early (a pipelined actor's second group rides in the next batch).
             expected = max(1, self.cfg.actors_of_shard(self.member_id))
             while rows < self.cfg.shield.max_batch and len(batch) < expected:
                 remaining = deadline - time.perf_counter()
