@@ -13,7 +13,7 @@ from hypothesis.extra.numpy import arrays
 
 sys.path.insert(0, str(Path(__file__).parent))
 from services_fakes import fake_solve  # noqa: E402
-from test_services import make_cfg, wait_for  # noqa: E402
+from test_services import _ask_concurrently, make_cfg, wait_for  # noqa: E402
 
 from common import keys, wire  # noqa: E402
 from common.safety_rows import SafetyRows  # noqa: E402
@@ -335,21 +335,6 @@ def _serve(cfg, bus, solve):
     return shield, stop, th
 
 
-def _ask(cfg, bus, reqs):
-    replies = [None] * len(reqs)
-
-    def ask(i):
-        p = wire.encode("shield_req", reqs[i], run_id=cfg.run_id, sender=f"actor/{i}", seq=0)
-        replies[i] = bus.request(keys.shield(cfg.run_id), p, timeout=10.0)
-
-    ts = [threading.Thread(target=ask, args=(i,)) for i in range(len(reqs))]
-    for t in ts:
-        t.start()
-    for t in ts:
-        t.join()
-    return replies
-
-
 def _pruned_requests():
     rng = np.random.default_rng(5)
     reqs = []
@@ -372,7 +357,7 @@ def test_shield_service_solves_requests_of_different_m_in_one_call(tmp_path, bus
     shield, stop, th = _serve(cfg, bus, spy)
     calls.clear()  # the warm-up solve
     reqs = _pruned_requests()
-    replies = _ask(cfg, bus, reqs)
+    replies = _ask_concurrently(cfg, bus, reqs)
     stop.set()
     th.join(5)
     M = max(r["C"].shape[1] for r in reqs)
@@ -402,7 +387,7 @@ def test_shield_service_isolates_a_failing_request_after_a_failed_joint_solve(tm
 
     shield, stop, th = _serve(cfg, bus, picky)
     calls.clear()
-    replies = _ask(cfg, bus, reqs)
+    replies = _ask_concurrently(cfg, bus, reqs)
     stop.set()
     th.join(5)
     assert sorted(calls) == [2, 3, 5]   # joint, then one by one

@@ -229,23 +229,25 @@ def stack_team_arrays(params: Mapping[str, np.ndarray], spec: ParamsSpec) -> tup
     return w, stack("b"), stack("K"), stack("beta"), stack("c_a"), stack("s_a")
 
 
-def team_forward_np(params: Mapping[str, np.ndarray], obs: np.ndarray):
-    """All carriers: obs [B,N,obs_dim] -> (a_st [B,N*A], leaves [B,N], nodes [B,N,D], sides [B,N,D]).
-    The compiled kernel (common/policy/tree_kernels.py); ``team_forward_np_reference`` is its numpy twin."""
+def _team_inputs(params: Mapping[str, np.ndarray], obs: np.ndarray) -> tuple[ParamsSpec, np.ndarray]:
     spec = validate_params(params)
     obs = np.asarray(obs)
     if obs.ndim != 3 or obs.shape[1:] != (spec.n_agents, spec.obs_dim):
         raise ValueError(f"team: obs must be [B,{spec.n_agents},{spec.obs_dim}], got {obs.shape}")
+    return spec, obs
+
+
+def team_forward_np(params: Mapping[str, np.ndarray], obs: np.ndarray):
+    """All carriers: obs [B,N,obs_dim] -> (a_st [B,N*A], leaves [B,N], nodes [B,N,D], sides [B,N,D]).
+    The compiled kernel (common/policy/tree_kernels.py); ``team_forward_np_reference`` is its numpy twin."""
+    spec, obs = _team_inputs(params, obs)
     stacked = params.stacked if isinstance(params, ValidatedParams) else stack_team_arrays(params, spec)
     return team_forward_kernel(np.ascontiguousarray(obs, dtype=np.float64), *stacked, spec.depth)
 
 
 def team_forward_np_reference(params: Mapping[str, np.ndarray], obs: np.ndarray):
     """Numpy reference of ``team_forward_np``: each carrier's ``tree_forward_np``."""
-    spec = validate_params(params)
-    obs = np.asarray(obs)
-    if obs.ndim != 3 or obs.shape[1:] != (spec.n_agents, spec.obs_dim):
-        raise ValueError(f"team: obs must be [B,{spec.n_agents},{spec.obs_dim}], got {obs.shape}")
+    spec, obs = _team_inputs(params, obs)
     outs = [tree_forward_np(carrier_params(params, i), obs[:, i]) for i in range(spec.n_agents)]
     return (
         np.concatenate([o[0] for o in outs], axis=1),

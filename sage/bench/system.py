@@ -199,9 +199,8 @@ class LocalQPActor(ActorService):
 
     def filter_actions(self, a_prop, rows: SafetyRows, asked=None):
         t0 = time.perf_counter()
-        # the same QP the shield service is asked (actor.prune_rows), so the ratio is the service's cost
-        sent = drop_box_redundant_rows(a_prop, rows) if self.cfg.actor.prune_rows else rows
-        res = shield_actions(a_prop, sent, backend=self.cfg.shield.backend)
+        # the same QP the shield service is asked, so the ratio is the service's cost
+        res = shield_actions(a_prop, self.query_rows(a_prop, rows), backend=self.cfg.shield.backend)
         self.rtt.add(time.perf_counter() - t0)
         return np.asarray(res.a_exec, dtype=np.float64), res.status
 

@@ -147,10 +147,14 @@ class ActorService(Service):
         ``filter_actions(..., asked=...)`` collects them. Rows the action box
         satisfies everywhere are not sent (``actor.prune_rows``; exact, the QP
         never needs them); the answer is still checked against all of them."""
-        sent = drop_box_redundant_rows(a_prop, rows) if self.cfg.actor.prune_rows else rows
-        payload = self.encode("shield_req", {"a_prop": a_prop, **sent.as_dict()})
+        payload = self.encode("shield_req", {"a_prop": a_prop, **self.query_rows(a_prop, rows).as_dict()})
         return payload, time.perf_counter(), self.bus.replies(self.shield_key, payload,
                                                                timeout=self.cfg.actor.shield_timeout_s)
+
+    def query_rows(self, a_prop: np.ndarray, rows: SafetyRows) -> SafetyRows:
+        """The rows the QP is asked with: without those the box satisfies
+        everywhere (``actor.prune_rows``), which it can never need."""
+        return drop_box_redundant_rows(a_prop, rows) if self.cfg.actor.prune_rows else rows
 
     def filter_actions(self, a_prop: np.ndarray, rows: SafetyRows,
                        asked: tuple | None = None) -> tuple[np.ndarray, np.ndarray] | None:
