@@ -248,9 +248,17 @@ class Bus:
 
         The get is sent when this is called, not when iteration starts:
         replies queue up in Zenoh's channel meanwhile, so a caller can send
-        several queries and then collect them (the pipelined actor)."""
-        handler = self._session.get(key, payload=payload, timeout=float(timeout), target=zenoh.QueryTarget.ALL,
-                                    consolidation=zenoh.ConsolidationMode.NONE)
+        several queries and then collect them (the pipelined actor). A closed
+        bus sends nothing and has no replies (as ``publish`` sends nothing)."""
+        if self._closed:
+            return iter(())
+        try:
+            handler = self._session.get(key, payload=payload, timeout=float(timeout), target=zenoh.QueryTarget.ALL,
+                                        consolidation=zenoh.ConsolidationMode.NONE)
+        except zenoh.ZError:
+            if self._closed:   # closed by another thread meanwhile
+                return iter(())
+            raise
         return (Reply(ok=r.ok.payload.to_bytes()) if r.ok is not None else Reply(err=r.err.payload.to_bytes())
                 for r in handler)
 

@@ -76,6 +76,69 @@ def test_pipelined_chunks_carry_each_steps_version(tmp_path):
     assert abs(n0 - n1) <= 1
 
 
+class _CountingBus:
+    """The actor's bus, counting shield queries sent whose replies nobody has
+    started reading yet."""
+
+    def __init__(self, bus):
+        self.bus, self.outstanding = bus, 0
+
+    def __getattr__(self, name):
+        return getattr(self.bus, name)
+
+    def replies(self, key, payload, timeout):
+        self.outstanding += 1
+        it = self.bus.replies(key, payload, timeout)
+
+        def read():
+            self.outstanding -= 1
+            yield from it
+        return read()
+
+
+class _WatchedEnv(FakeBatchEnv):
+    def __init__(self, n, seed, bus):
+        super().__init__(n, seed=seed)
+        self.bus, self.out_at_step = bus, []
+
+    def step(self, actions):
+        self.out_at_step.append(self.bus.outstanding)
+        return super().step(actions)
+
+
+@pytest.mark.parametrize("pipeline", [False, True], ids=["sync", "pipelined"])
+def test_a_pipelined_group_steps_while_the_other_groups_query_is_out(tmp_path, pipeline):
+    """Double buffering, not just two groups in turn: inside a chunk, every
+    group steps physics while exactly one query (the other group's) is at the
+    shield; at a chunk's last step group 1 steps with none out (the pipeline
+    empties there). The synchronous actor never has a query out while stepping."""
+    T = 4
+    cfg = make_cfg(tmp_path, chunk_len=T, actors=1, envs_per_actor=3,
+                   actor=ActorConfig(max_chunks_ahead=100, pipeline=pipeline))
+    bus, stop = Bus.open(inprocess=True), threading.Event()
+    threading.Thread(target=ShieldService(cfg, bus, stop=stop, solve=fake_solve).run, daemon=True).start()
+    counting = _CountingBus(bus)
+    groups = [_WatchedEnv(2, 0, counting), _WatchedEnv(1, 1, counting)] if pipeline else [_WatchedEnv(3, 0, counting)]
+    actor = ActorService(cfg, counting, 0, stop=stop, env=groups if pipeline else groups[0], propose=fake_propose)
+    threading.Thread(target=actor.run, daemon=True).start()
+    wait_for(lambda: actor.state == "waiting")
+    body = {"version": 0, "incarnation": "inc", "method": cfg.method, "params": FakeMethod().policy_params(),
+            "settings": {"kappa": 1.0}}
+    bus.publish(keys.params(cfg.run_id), wire.encode("params", body, run_id=cfg.run_id, sender="learner/0", seq=0))
+    try:
+        wait_for(lambda: len(groups[-1].out_at_step) >= 3 * T, timeout=20)
+    finally:
+        stop.set()
+        bus.close()
+    n = 3 * T
+    if not pipeline:
+        assert groups[0].out_at_step[:n] == [0] * n
+        return
+    assert groups[0].out_at_step[:n] == [1] * n                      # group 1's query is out
+    assert groups[1].out_at_step[:n] == ([1] * (T - 1) + [0]) * 3    # group 0's next one, but at chunk ends
+    assert all((a[:, 0] >= 0.5 - 1e-12).all() for g in groups for a in g.executed)
+
+
 def test_unshielded_or_single_env_actors_do_not_pipeline(tmp_path):
     cfg = make_cfg(tmp_path, method="happo")
     assert not ActorService(cfg, Bus.open(inprocess=True), 0).pipelined

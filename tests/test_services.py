@@ -89,6 +89,15 @@ def test_two_runs_on_one_session_do_not_cross_talk(bus):
     assert e.value.reason == "run_id"
 
 
+def test_a_closed_bus_sends_nothing_and_has_no_replies():
+    """An actor thread still stepping while its process shuts the bus: its
+    query gets no replies (fail closed: nothing executed), not an exception."""
+    closed = Bus.open(inprocess=True)
+    closed.close()
+    closed.publish(keys.params("r"), b"x")
+    assert list(closed.replies(keys.shield("r", 0), b"q", timeout=0.1)) == []
+
+
 def _req(n, seed):
     env = FakeBatchEnv(n, seed=seed)
     o = env.reset()

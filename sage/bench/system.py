@@ -138,6 +138,9 @@ class StepMeter:
         with self._lock:
             if b["role"] == "actor":
                 self.last[b["id"]] = (msg.t, int(b["env_steps"]))
+                for name in ("shield_wait_s", "loop_cpu_s"):
+                    if f"{name}_total" in extra:
+                        self.counters[f"actor/{b['id']}/{name}"] = (msg.t, float(extra[f"{name}_total"]))
             elif b["role"] == "learner" and "update_s_total" in extra:
                 self.counters["learner/update_s"] = (msg.t, float(extra["update_s_total"]))
             elif b["role"] == "shield" and "rows" in extra:
@@ -471,7 +474,7 @@ class SystemBench:
                      "shield_service": service_specs(path, roles=("actor",), actor_ids=[0])[0].argv,
                      "shield_service_pipelined": service_specs(piped_path, roles=("actor",), actor_ids=[0])[0].argv,
                      "shield_service_full_rows": service_specs(full_path, roles=("actor",), actor_ids=[0])[0].argv}
-            rates = {}
+            rates, loop = {}, {}
             try:
                 for kind, argv in actor.items():
                     self.log(f"bench: one actor process ({self.cfg.envs_per_actor} envs), {kind.replace('_', ' ')}")
@@ -479,6 +482,8 @@ class SystemBench:
                     meter.reset()
                     rates[kind] = meter.measure(1, self.cfg.warmup_s, self.cfg.measure_s,
                                                 self.cfg.start_timeout_s, self.check)
+                    loop[kind] = {name: meter.window_rates.get(f"actor/0/{name}")
+                                  for name in ("shield_wait_s", "loop_cpu_s")}
                     self.stop(sub)
             finally:
                 feeder.stop()
@@ -514,6 +519,10 @@ class SystemBench:
                                        "bytes": self._params_bytes(learner, cfg.run_id), "broadcasts": params["n"]},
                 "router_msgs_per_s": router,
                 "actor_steps_per_s": rates,
+                # per second of the actor's wall time: blocked on shield answers, and
+                # its rollout thread's CPU time (1 - both: descheduled by the OS)
+                "actor_loop_share": {kind: {"shield_wait": v["shield_wait_s"], "cpu": v["loop_cpu_s"]}
+                                     for kind, v in loop.items()},
                 "ratio_vs_local_qp": rates["shield_service"] / rates["local_qp"],
                 "pipelining_gain": rates["shield_service_pipelined"] / rates["shield_service"],
                 "row_pruning_gain": rates["shield_service"] / rates["shield_service_full_rows"]}

@@ -11,12 +11,15 @@ nothing is executed; the step is retried, counted, and after
 metric, log) and, if configured, exits with code 3.
 
 Pipelining (``actor.pipeline``, Sample Factory's double-buffered sampling):
-the K envs are two groups. Both groups propose with the same parameters;
-group 0's query goes out first (a Zenoh get returns at once; its replies
-queue up), group 1 proposes while it is at the shield, then group 0 steps
-physics while group 1's query is out. No threads: the only concurrency is
-the shield's and the network's. The step's chunk record is the two groups
-side by side (group 0's envs first), so the learner sees the same chunks.
+the K envs are two groups that alternate. Each group, right after it steps
+physics, proposes its next step and sends that query, so group 0's query is
+at the shield while group 1 waits, steps and proposes, and the other way
+round (a Zenoh get returns at once; its replies queue up). Both groups'
+proposals of one step use the same parameters (adopted once, after group 0
+stepped); chunk ends and learner restarts empty the pipeline. No threads: the
+only concurrency is the shield's and the network's. The step's chunk record
+is the two groups side by side (group 0's envs first), so the learner sees
+the same chunks.
 """
 from __future__ import annotations
 
@@ -84,6 +87,8 @@ class ActorService(Service):
         self.obs_dim: int | None = self.envs[0].obs_dim if self.envs else None   # set with the envs in run()
         self._sent_chunks: deque[tuple[int, str, int]] = deque(maxlen=16)   # (newest version, incarnation, seq)
         self.steps_taken = 0   # batched steps (each K env steps)
+        self.shield_wait_s = 0.0   # rollout loop blocked on shield answers
+        self.loop_cpu_s = 0.0      # the rollout loop thread's CPU time
 
     # ------------------------------------------------------------- parameters
     def _on_params(self, _key: str, payload: bytes) -> None:
@@ -139,7 +144,10 @@ class ActorService(Service):
                           "params_refused": float(self.params_refused),
                           "chunks_discarded": float(self.chunks_discarded),
                           "steps_discarded": float(self.steps_discarded),
-                          "K": float(self.cfg.envs_per_actor)}}
+                          "K": float(self.cfg.envs_per_actor),
+                          # where the rollout loop's time goes: blocked on shield answers,
+                          # and its thread's CPU time (the rest: descheduled by the OS)
+                          "shield_wait_s_total": self.shield_wait_s, "loop_cpu_s_total": self.loop_cpu_s}}
 
     # ------------------------------------------------------------- shield
     def ask_shield(self, a_prop: np.ndarray, rows: SafetyRows) -> tuple:
@@ -169,7 +177,7 @@ class ActorService(Service):
         backoff = 0.01
         while not self.stop.is_set():
             why = "no reply (shield unreachable or timed out)"
-            for reply in replies:
+            for reply in self._waited(replies):
                 if reply.ok is None:
                     why = "shield error: " + reply.err.decode(errors="replace")[:200]
                     continue
@@ -213,6 +221,17 @@ class ActorService(Service):
             t0, replies = time.perf_counter(), self.bus.replies(self.shield_key, payload,
                                                                 timeout=acfg.shield_timeout_s)
         return None
+
+    def _waited(self, replies):
+        """The replies, the time blocked on each counted in ``shield_wait_s``."""
+        it = iter(replies)
+        while True:
+            t0 = time.perf_counter()
+            reply = next(it, None)
+            self.shield_wait_s += time.perf_counter() - t0
+            if reply is None:
+                return
+            yield reply
 
     def _refuse(self, reason: str, sender: str) -> None:
         self.answers_refused[reason] += 1
@@ -267,11 +286,16 @@ class ActorService(Service):
         episodes: list[dict] = []
         chunk_incarnation = None
         T = self.cfg.chunk_len
+        sent = None   # every group's proposal (and query) for the coming step, made with ``p``
+        cpu0 = time.thread_time()
         while not self.stop.is_set():
-            self._adopt_params()
-            if not versions:
-                self._pace()
-            p = self.params
+            self.loop_cpu_s = time.thread_time() - cpu0
+            if sent is None:   # pipeline empty: at the start, at chunk ends, after a learner restart
+                self._adopt_params()
+                if not versions:
+                    self._pace()
+                p = self.params
+                sent = [self._propose_group(out, p) for out in outs]
             if versions and p["incarnation"] != chunk_incarnation:
                 # learner restarted: its resumed policy starts a fresh chunk (the
                 # partial one was made with parameters the new learner never issued)
@@ -280,10 +304,10 @@ class ActorService(Service):
                 buf = {k: [] for k in wire.TRAJ_STEP_FIELDS}
                 versions, episodes = [], []
             chunk_incarnation = p["incarnation"]
-            stepped = self._step_groups(envs, outs, p)
+            stepped = self._step_groups(envs, outs, sent, p, refill=len(versions) + 1 < T)
             if stepped is None:   # stopping: the partial chunk is dropped
                 return
-            records, outs = stepped
+            records, outs, sent, p_next = stepped
             for k in wire.TRAJ_STEP_FIELDS:  # copy: envs may reuse their output buffers
                 buf[k].append(np.concatenate([np.asarray(r[k]) for r in records]) if len(records) > 1
                               else np.array(records[0][k], copy=True))
@@ -311,29 +335,39 @@ class ActorService(Service):
                 self._publish_chunk(buf, versions, episodes, last)
                 buf = {k: [] for k in wire.TRAJ_STEP_FIELDS}
                 versions, episodes = [], []
+            p = p_next
             self.publish_status()
 
-    def _step_groups(self, envs: list, outs: list[dict], p: dict) -> tuple[list[dict], list[dict]] | None:
-        """One step of every env group with parameters ``p`` (Eq. action_chain):
-        all groups propose and send their queries first, then each waits for
-        its verified answer and steps physics, so a pipelined actor's group 0
-        steps while group 1's query is out. Returns the per-group step records
-        and next outputs, or None if stopping (nothing more is executed)."""
+    def _propose_group(self, out: dict, p: dict) -> tuple:
+        """One group's proposal with parameters ``p`` (Eq. action_chain); a
+        pipelined actor sends its shield query at once (a synchronous one when
+        it needs the answer, in ``filter_actions``)."""
         kappa = float(p["settings"].get("kappa", 0.0)) if self.uses_sail else 0.0
-        sent = []
-        for out in outs:
-            rows = SafetyRows.of(out)
-            prop = self._propose(p["params"], out["obs"], rows, out["human_action"], self.rng, "train",
-                                 kappa=kappa, use_sail=self.uses_sail)
-            a_prop = np.asarray(prop["a_prop"], dtype=np.float64)
-            # pipelined: the query goes out now; synchronous: when its answer is needed
-            asked = self.ask_shield(a_prop, rows) if self.shielded and self.pipelined else None
-            sent.append((prop, a_prop, rows, asked))
+        rows = SafetyRows.of(out)
+        prop = self._propose(p["params"], out["obs"], rows, out["human_action"], self.rng, "train",
+                             kappa=kappa, use_sail=self.uses_sail)
+        a_prop = np.asarray(prop["a_prop"], dtype=np.float64)
+        asked = self.ask_shield(a_prop, rows) if self.shielded and self.pipelined else None
+        return prop, a_prop, rows, asked
+
+    def _step_groups(self, envs: list, outs: list[dict], sent: list[tuple], p: dict, refill: bool):
+        """Execute one step of every env group, proposed (and, pipelined, asked)
+        in ``sent`` with parameters ``p``: each group waits for its verified
+        answer and steps physics. Pipelined with ``refill`` (the chunk goes on),
+        each group proposes its next step and sends that query right after
+        stepping, so group 0's query is out while group 1 steps and the other
+        way round (Sample Factory's double buffering). Both groups' next step
+        uses the same parameters, adopted once after group 0 stepped; a learner
+        restart (new incarnation) empties the pipeline instead, so the partial
+        chunk is dropped before anything of the new policy is proposed.
+        Returns ``(records, next outputs, next sent or None, next p)``, or None
+        if stopping (nothing more is executed)."""
         if self._chaos is not None and self._chaos.random() < self.cfg.actor.chaos_crash_prob:
             self.log.error("chaos: crashing on purpose (actor.chaos_crash_prob)")
             os._exit(EXIT_CHAOS)   # like a killed process: no cleanup, no last chunk
-        records, nxts = [], []
-        for env, out, (prop, a_prop, rows, asked) in zip(envs, outs, sent):
+        refill = refill and self.pipelined
+        records, nxts, next_sent, p_next = [], [], [], p
+        for g, (env, out, (prop, a_prop, rows, asked)) in enumerate(zip(envs, outs, sent)):
             if not self.shielded:
                 a_exec, shield_status = a_prop, np.full(len(a_prop), UNSHIELDED)
             else:
@@ -351,7 +385,13 @@ class ActorService(Service):
                             "final_state": nxt["final_state"], "final_obs": nxt["final_obs"],
                             "nodes": prop["nodes"], "sides": prop["sides"]})   # decision traces only
             nxts.append(nxt)
-        return records, nxts
+            if refill and g == 0:
+                self._adopt_params()
+                p_next = self.params
+                refill = p_next["incarnation"] == p["incarnation"]
+            if refill:
+                next_sent.append(self._propose_group(nxt, p_next))
+        return records, nxts, (next_sent if refill else None), p_next
 
     def _publish_trace(self, records: list[dict], version: int) -> None:
         """The step's decisions for `sage watch` (wire kind ``trace``)."""
