@@ -24,8 +24,9 @@ import numpy as np
 
 from common.safety_rows import SafetyRows
 from common.shield.qp import InvalidQPInput, QPConfig, solve_cbf_qp
+from common.shield.row_kernels import compact_rows_kernel, keep_rows_kernel
 
-__all__ = ["drop_box_redundant_rows", "kept_rows", "DEFAULT_LO", "DEFAULT_HI", "MARGIN_REL"]
+__all__ = ["drop_box_redundant_rows", "drop_box_redundant_rows_reference", "kept_rows", "DEFAULT_LO", "DEFAULT_HI", "MARGIN_REL"]
 
 # The box the shield solves over: the single source is solve_cbf_qp's own defaults
 # (shield_actions and the shield service call it without lo/hi).
@@ -63,9 +64,27 @@ def _arrays(a_prop, rows: SafetyRows):
     return a, C, c, mask, fixed
 
 
-def _keep(a, C, c, mask, fixed, lo, hi, config) -> np.ndarray:
+def _margin(config: QPConfig | None) -> float:
     cfg = config or QPConfig()
-    margin = max(MARGIN_REL, 10.0 * max(cfg.tol, cfg.active_tol))
+    return max(MARGIN_REL, 10.0 * max(cfg.tol, cfg.active_tol))
+
+
+def _keep(a, C, c, mask, fixed, lo, hi, config) -> np.ndarray:
+    """The kept-row mask: the compiled kernel for the usual scalar box (what
+    every actor step asks), the numpy reference for a per-column box."""
+    if np.ndim(lo) == 0 and np.ndim(hi) == 0:
+        lo_a, hi_a = float(lo), float(hi)
+        if not (math.isfinite(lo_a) and math.isfinite(hi_a) and lo_a <= hi_a):
+            raise InvalidQPInput(f"drop_box_redundant_rows: lo/hi must be finite with lo <= hi, got {lo}, {hi}")
+        arrays = [np.require(v, dt, "CA") for v, dt in ((a, np.float64), (C, np.float64), (c, np.float64),
+                                                         (mask, np.bool_), (fixed, np.bool_))]
+        return keep_rows_kernel(*arrays, 0.5 * (lo_a + hi_a), 0.5 * (hi_a - lo_a), _margin(config), _GUARD)
+    return _keep_reference(a, C, c, mask, fixed, lo, hi, config)
+
+
+def _keep_reference(a, C, c, mask, fixed, lo, hi, config) -> np.ndarray:
+    """The kept-row mask in numpy: any box; the reference of ``keep_rows_kernel``."""
+    margin = _margin(config)
     B, M, d = C.shape
     if np.ndim(lo) == 0 and np.ndim(hi) == 0:   # the usual scalar box: Python floats, fewer array ops
         lo_a, hi_a = float(lo), float(hi)
@@ -129,6 +148,17 @@ def drop_box_redundant_rows(a_prop, rows: SafetyRows, lo=DEFAULT_LO, hi=DEFAULT_
     """
     a, C, c, mask, fixed = _arrays(a_prop, rows)
     keep = _keep(a, C, c, mask, fixed, lo, hi, config)
+    C_out, c_out, row_out = compact_rows_kernel(np.require(C, np.float64, "CA"), np.require(c, np.float64, "CA"),
+                                                np.require(mask, np.bool_, "CA"), keep)
+    return SafetyRows(C_out, c_out, row_out, np.array(fixed, dtype=bool))
+
+
+def drop_box_redundant_rows_reference(a_prop, rows: SafetyRows, lo=DEFAULT_LO, hi=DEFAULT_HI,
+                                      config: QPConfig | None = None) -> SafetyRows:
+    """``drop_box_redundant_rows`` in numpy (keep mask and scatter): the reference
+    its kernels are tested against."""
+    a, C, c, mask, fixed = _arrays(a_prop, rows)
+    keep = _keep_reference(a, C, c, mask, fixed, lo, hi, config)
     B, M, d = C.shape
     n_keep = keep.sum(axis=1)
     Mp = max(1, int(n_keep.max(initial=0)))

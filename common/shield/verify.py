@@ -16,7 +16,10 @@ forged, stale or buggy shield is harmless even on an open network:
   Infeasible row sets are rare, so the local solve costs little.
 
 ``verify_answer`` returns ``None`` for an answer to execute, else the reason
-(one of ``REJECT_REASONS``) it was refused.
+(one of ``REJECT_REASONS``) it was refused: the first failed check in the
+order above, over the whole batch. The checks run as one compiled pass
+(``row_kernels.check_answer_kernel``); ``verify_answer_reference`` is the
+same in numpy, the reference it is tested against.
 """
 from __future__ import annotations
 
@@ -25,12 +28,55 @@ import numpy as np
 from common.safety_rows import SafetyRows
 from common.shield.kernels import STATUS_INFEASIBLE, STATUS_OPTIMAL
 from common.shield.qp import shield_actions
+from common.shield.row_kernels import CHECK_ORDER, check_answer_kernel
 
 REJECT_REASONS = ("shape", "nonfinite", "box", "fixed_block", "status", "rows", "infeasible_claim")
 
 
 def verify_answer(a_prop: np.ndarray, rows: SafetyRows, a_exec: np.ndarray, status: np.ndarray,
                   tol: float = 1e-6, backend: str = "default") -> str | None:
+    a_prop = np.asarray(a_prop, dtype=np.float64)
+    a_exec = np.asarray(a_exec)
+    status = np.asarray(status)
+    if a_exec.shape != a_prop.shape or status.shape != a_prop.shape[:1]:
+        return "shape"
+    if a_exec.dtype.kind != "f":
+        return "nonfinite"
+    if status.dtype.kind not in "iu":   # not what a shield sends: checked the slow way, same verdict
+        return verify_answer_reference(a_prop, rows, a_exec, status, tol, backend)
+    C, c = np.asarray(rows.C, np.float64), np.asarray(rows.c, np.float64)
+    if C.shape[:1] + C.shape[2:] != a_prop.shape or c.shape != C.shape[:2]:
+        return "shape"
+    fixed = np.broadcast_to(np.asarray(rows.fixed_mask, dtype=bool), a_prop.shape)
+    mask = np.broadcast_to(np.asarray(rows.row_mask, dtype=bool), c.shape)
+    failed, violation = check_answer_kernel(
+        np.require(a_prop, np.float64, "CA"), np.require(a_exec, np.float64, "CA"),
+        np.require(status, np.int64, "CA"), np.require(C, np.float64, "CA"), np.require(c, np.float64, "CA"),
+        np.require(mask, np.bool_, "CA"), np.require(fixed, np.bool_, "CA"),
+        float(tol), STATUS_OPTIMAL, STATUS_INFEASIBLE)
+    for reason, bad in zip(CHECK_ORDER, failed):
+        if bad:
+            return reason
+    return _check_infeasible_claims(a_prop, rows, status, violation, tol, backend)
+
+
+def _check_infeasible_claims(a_prop, rows: SafetyRows, status, violation, tol, backend) -> str | None:
+    """Problems claimed infeasible: re-solved locally with the same exact QP."""
+    claimed = status == STATUS_INFEASIBLE
+    if claimed.any():
+        idx = np.flatnonzero(claimed)
+        local = shield_actions(a_prop[idx], rows.select(idx), backend=backend)
+        if np.any(local.status != STATUS_INFEASIBLE):
+            return "infeasible_claim"
+        local_violation = rows.select(idx).scaled_violation(local.a_exec)
+        if np.any(violation[idx] > local_violation + tol):
+            return "rows"
+    return None
+
+
+def verify_answer_reference(a_prop: np.ndarray, rows: SafetyRows, a_exec: np.ndarray, status: np.ndarray,
+                            tol: float = 1e-6, backend: str = "default") -> str | None:
+    """``verify_answer`` in numpy, check by check: the kernel's reference."""
     a_prop = np.asarray(a_prop, dtype=np.float64)
     a_exec = np.asarray(a_exec)
     status = np.asarray(status)
@@ -50,12 +96,4 @@ def verify_answer(a_prop: np.ndarray, rows: SafetyRows, a_exec: np.ndarray, stat
     claimed = status == STATUS_INFEASIBLE
     if np.any(violation[~claimed] > tol):
         return "rows"
-    if claimed.any():
-        idx = np.flatnonzero(claimed)
-        local = shield_actions(a_prop[idx], rows.select(idx), backend=backend)
-        if np.any(local.status != STATUS_INFEASIBLE):
-            return "infeasible_claim"
-        local_violation = rows.select(idx).scaled_violation(local.a_exec)
-        if np.any(violation[idx] > local_violation + tol):
-            return "rows"
-    return None
+    return _check_infeasible_claims(a_prop, rows, status, violation, tol, backend)
