@@ -96,11 +96,13 @@ class ActorConfig:
     # exits abruptly with this probability. For supervised runs, which restart it; 0 = off.
     chaos_crash_prob: float = 0.0
     # Double-buffered sampling (as Sample Factory's): the K envs are two groups
-    # that alternate, so one group's proposals are at the shield while the other
-    # group steps physics. Same chunks (all K envs, one version per step), same
+    # that alternate, so one group's query is at the shield while the other group
+    # steps physics. Same chunks (all K envs, one version per step), same
     # fail-closed rules; only the order of waiting changes. Needs K >= 2 and a
-    # shielded method (without a shield there is no round trip to hide).
-    pipeline: bool = False
+    # shielded method (without a shield there is no round trip to hide). On by
+    # default: an actor waits 0.01 of its time for answers instead of 0.2, at
+    # the price of a second, smaller propose/verify per step (docs/scaling.md).
+    pipeline: bool = True
     # Live decision stream (`sage watch RUN`): every this many steps the actor
     # publishes the step's leaves, predicate paths and QP correction norms on
     # sage/<run>/trace/<actor>. 0 = off; 10 costs one small message per 10 steps.

@@ -68,7 +68,7 @@ def test_step_meter_sums_actor_rates_on_the_sender_clock():
     assert rate == pytest.approx(550.0, rel=0.02)
 
 
-def test_step_meter_rates_the_learners_update_share_and_each_shards_qps():
+def test_step_meter_rates_the_learners_update_share_each_shards_qps_and_the_actors_loop():
     meter = StepMeter("runA")
     t0 = time.time()
     stop = threading.Event()
@@ -76,7 +76,8 @@ def test_step_meter_rates_the_learners_update_share_and_each_shards_qps():
     def feed():
         while not stop.is_set():
             dt = time.time() - t0
-            meter.on_status("k", status_msg("runA", "actor", "0", 1 + int(100 * dt)))
+            meter.on_status("k", status_msg("runA", "actor", "0", 1 + int(100 * dt),
+                                            {"shield_wait_s_total": 0.1 * dt, "loop_cpu_s_total": 0.85 * dt}))
             meter.on_status("k", status_msg("runA", "learner", "0", 0, {"update_s_total": 0.25 * dt}))
             for k, qps in (("0", 300.0), ("1", 50.0)):
                 meter.on_status("k", status_msg("runA", "shield", k, 0, {"rows": qps * dt}))
@@ -91,6 +92,8 @@ def test_step_meter_rates_the_learners_update_share_and_each_shards_qps():
         th.join()
     r = meter.window_rates
     assert r["learner/update_s"] == pytest.approx(0.25, rel=0.05)
+    assert r["actor/0/shield_wait_s"] == pytest.approx(0.1, rel=0.05)
+    assert r["actor/0/loop_cpu_s"] == pytest.approx(0.85, rel=0.05)
     assert r["shield/0/rows"] == pytest.approx(300.0, rel=0.05) and r["shield/1/rows"] == pytest.approx(50.0, rel=0.05)
 
 
@@ -205,10 +208,10 @@ def test_command_line_and_table():
                                       "pruned_p99": 0.9, "bytes": 91000, "pruned_bytes": 9100}},
               "param_broadcast_ms": {"p50": 2.5, "p99": 4.0, "inprocess_p50": 0.9, "inprocess_p99": 1.1,
                                      "bytes": 27547},
-              "actor_steps_per_s": {"shield_service": 175.0, "local_qp": 212.0, "shield_service_pipelined": 170.0,
+              "actor_steps_per_s": {"shield_service": 175.0, "local_qp": 212.0, "shield_service_sync": 170.0,
                                     "shield_service_full_rows": 150.0}, "ratio_vs_local_qp": 0.83,
               "ratio_target": 0.7}
     table = summary_table(result)
     assert "ratio 0.83" in table and "B=8" in table and "27547 B" in table and "91000 / 9100" in table
-    assert "full rows 150.0" in table
+    assert "full rows 150.0" in table and "synchronous 170.0" in table
     assert "sage" in table and "(0.30,  0.40)" in table and "2 shard(s), 4 actors" in table
