@@ -69,28 +69,35 @@ def _margin(config: QPConfig | None) -> float:
     return max(MARGIN_REL, 10.0 * max(cfg.tol, cfg.active_tol))
 
 
+def _scalar_box(lo, hi) -> tuple[float, float] | None:
+    """(mid, half) of a scalar box (checked as solve_cbf_qp does), None for a per-column one."""
+    if np.ndim(lo) != 0 or np.ndim(hi) != 0:
+        return None
+    lo_a, hi_a = float(lo), float(hi)
+    if not (math.isfinite(lo_a) and math.isfinite(hi_a) and lo_a <= hi_a):
+        raise InvalidQPInput(f"drop_box_redundant_rows: lo/hi must be finite with lo <= hi, got {lo}, {hi}")
+    return 0.5 * (lo_a + hi_a), 0.5 * (hi_a - lo_a)
+
+
 def _keep(a, C, c, mask, fixed, lo, hi, config) -> np.ndarray:
     """The kept-row mask: the compiled kernel for the usual scalar box (what
     every actor step asks), the numpy reference for a per-column box."""
-    if np.ndim(lo) == 0 and np.ndim(hi) == 0:
-        lo_a, hi_a = float(lo), float(hi)
-        if not (math.isfinite(lo_a) and math.isfinite(hi_a) and lo_a <= hi_a):
-            raise InvalidQPInput(f"drop_box_redundant_rows: lo/hi must be finite with lo <= hi, got {lo}, {hi}")
-        arrays = [np.require(v, dt, "CA") for v, dt in ((a, np.float64), (C, np.float64), (c, np.float64),
-                                                         (mask, np.bool_), (fixed, np.bool_))]
-        return keep_rows_kernel(*arrays, 0.5 * (lo_a + hi_a), 0.5 * (hi_a - lo_a), _margin(config), _GUARD)
-    return _keep_reference(a, C, c, mask, fixed, lo, hi, config)
+    box = _scalar_box(lo, hi)
+    if box is None:
+        return _keep_reference(a, C, c, mask, fixed, lo, hi, config)
+    arrays = [np.require(v, dt, "CA") for v, dt in ((a, np.float64), (C, np.float64), (c, np.float64),
+                                                     (mask, np.bool_), (fixed, np.bool_))]
+    return keep_rows_kernel(*arrays, *box, _margin(config), _GUARD)
 
 
 def _keep_reference(a, C, c, mask, fixed, lo, hi, config) -> np.ndarray:
     """The kept-row mask in numpy: any box; the reference of ``keep_rows_kernel``."""
     margin = _margin(config)
     B, M, d = C.shape
-    if np.ndim(lo) == 0 and np.ndim(hi) == 0:   # the usual scalar box: Python floats, fewer array ops
-        lo_a, hi_a = float(lo), float(hi)
-        if not (math.isfinite(lo_a) and math.isfinite(hi_a) and lo_a <= hi_a):
-            raise InvalidQPInput(f"drop_box_redundant_rows: lo/hi must be finite with lo <= hi, got {lo}, {hi}")
-        mid, half, half_max = 0.5 * (lo_a + hi_a), 0.5 * (hi_a - lo_a), 0.5 * (hi_a - lo_a)
+    box = _scalar_box(lo, hi)
+    if box is not None:   # the usual scalar box: Python floats, fewer array ops
+        mid, half = box
+        half_max = half
     else:
         lo_a, hi_a = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
         if not (np.isfinite(lo_a).all() and np.isfinite(hi_a).all()) or (lo_a > hi_a).any():

@@ -533,7 +533,7 @@ class SystemBench:
                 "actor_steps_per_s": rates,
                 "actor_steps_per_s_rounds": {kind: [rate for rate, _ in v] for kind, v in runs.items()},
                 # per second of the actor's wall time: blocked on shield answers, and
-                # its rollout thread's CPU time (1 - both: descheduled by the OS)
+                # its rollout thread's CPU time (1 - both: descheduled; the bench's actors never pace)
                 "actor_loop_share": {kind: {"shield_wait": v["shield_wait_s"], "cpu": v["loop_cpu_s"]}
                                      for kind, v in loop.items()},
                 "ratio_vs_local_qp": rates["shield_service"] / rates["local_qp"],

@@ -146,7 +146,7 @@ class ActorService(Service):
                           "steps_discarded": float(self.steps_discarded),
                           "K": float(self.cfg.envs_per_actor),
                           # where the rollout loop's time goes: blocked on shield answers,
-                          # and its thread's CPU time (the rest: descheduled by the OS)
+                          # and its thread's CPU time (the rest: pacing waits, descheduled)
                           "shield_wait_s_total": self.shield_wait_s, "loop_cpu_s_total": self.loop_cpu_s}}
 
     # ------------------------------------------------------------- shield
