@@ -82,7 +82,7 @@ def prepared(name, seed=0, double=True, human_rate=0.2):
 
 
 def team_surrogates(m, mb, tau=0.5, kappa=3.0):
-    a_st = m._tree_actions(mb, tau, range(m.n_agents))
+    a_st = m._tree_actions(mb, tau, grad=True)
     log_ratio = m._log_ratio(mb, m._center(mb, a_st, kappa), m._log_std())
     return m._surrogates(mb, log_ratio)
 
@@ -94,7 +94,9 @@ def test_detached_partner_surrogates_give_same_g_ind():
     g_shared = individual_gradient(L_shared, m.groups)
     L_det = []
     for i in range(m.n_agents):
-        a_st = m._tree_actions(mb, 0.5, [i])              # partners computed without a graph
+        a_st = m._tree_actions(mb, 0.5, grad=True)
+        blocks = a_st.split(3, dim=1)                       # partners cut from the graph
+        a_st = torch.cat([b if j == i else b.detach() for j, b in enumerate(blocks)], dim=1)
         log_ratio = m._log_ratio(mb, m._center(mb, a_st, 3.0), m._log_std())
         L_det.append(m._surrogates(mb, log_ratio)[0][i])
     g_det = individual_gradient(L_det, m.groups, separable=True)
@@ -200,7 +202,7 @@ def test_happo_factor_is_product_of_updated_ratios(name):
     # identity centers: carrier j's ratio depends on theta_j only, so the final
     # parameters reproduce the ratio each carrier had right after its own step
     with torch.no_grad():
-        a_st = m._tree_actions(mb, 0.5, ())
+        a_st = m._tree_actions(mb, 0.5, grad=False)
         ratio = m._log_ratio(mb, m._center(mb, a_st, 3.0), m._log_std()).exp()
     expected = torch.ones_like(mb.adv, dtype=torch.float64)
     for i in order:

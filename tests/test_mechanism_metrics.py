@@ -32,7 +32,7 @@ def flat(m):
 
 
 def surrogates(m, mb, tau=TAU, kappa=KAPPA):
-    a_st = m._tree_actions(mb, tau, range(m.n_agents))
+    a_st = m._tree_actions(mb, tau, grad=True)
     log_ratio = m._log_ratio(mb, m._center(mb, a_st, kappa), m._log_std())
     return m._surrogates(mb, log_ratio)
 

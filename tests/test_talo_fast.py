@@ -2,7 +2,8 @@
 one-graph W_gap / HVP of ``talo_gap`` (d = g_ind - g_team taken directly as the
 gradient of L_i - L_team) against g_ind and g_team each with
 ``create_graph=True`` and the double backward of 1/2 ||g_ind - g_team||^2 through
-both; the HAPPO step reusing the diagnostics' g_ind against recomputing it."""
+both; the coupled blocks taken through a_ST (``Through``) against one backward
+per carrier; the HAPPO step reusing the diagnostics' g_ind against recomputing it."""
 from __future__ import annotations
 
 import numpy as np
@@ -11,7 +12,7 @@ import torch
 
 from common.algos import AlgoConfig, make_method
 from common.algos.synthetic import BanditTask, collect
-from common.algos.talo import flat_grad, individual_gradient, talo_gap
+from common.algos.talo import Through, flat_grad, individual_gradient, talo_gap
 
 F64 = torch.float64
 
@@ -90,6 +91,40 @@ def test_one_graph_gap_equals_two_graph_gap_on_the_learner(name):
     old = two_graph_gap(L, team, m.groups, separable=not m.uses_sail)
     assert float(old[2]) > 1e-8
     assert_same(new, old, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("with_hvp", [True, False])
+@pytest.mark.parametrize("name", ["sage", "sail_cbf"])
+def test_coupled_blocks_through_a_st_equal_one_backward_per_carrier(name, with_hvp):
+    """SAIL couples the carriers, so block i of d = g_ind - g_team is grad_{theta_i}
+    (L_i - L_team) with every L_j depending on every tree. Taken through the trees'
+    stacked actions (one backward per carrier down to a_ST, one vector-Jacobian product
+    through all trees) it must give the same g_ind, g_team, W_gap and HVP."""
+    m, mb = prepared_double(name)
+    with torch.no_grad():   # off-policy start point: W_gap > 0
+        for p in m.actor_params:
+            p.add_(0.05 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel()), dtype=F64))
+    a_st, _, _, L, team = m._start_point(mb, 0.5, 3.0)
+    new = talo_gap(L, team, m.groups, with_hvp=with_hvp, through=m._through(a_st))
+    old = talo_gap(L, team, m.groups, with_hvp=with_hvp)
+    assert float(old[2]) > 1e-8 and old[0].abs().min() < old[0].abs().max()
+    assert_same(new if with_hvp else new[:3], old if with_hvp else old[:3], rtol=1e-9, atol=1e-12)
+    # the log_std blocks come from the direct route, the tree blocks from the product through a_ST
+    sizes = [p.numel() for p in m.actor_params]
+    log_std_entries = torch.cat([b for b, p in zip(new[0].split(sizes), m.actor_params)
+                                 if any(p is t.log_std for t in m.trees)])
+    assert log_std_entries.abs().max() > 0
+
+
+def test_through_rejects_slices_that_do_not_tile_the_intermediate():
+    m, mb = prepared_double("sage")
+    a_st, _, _, L, team = m._start_point(mb, 0.5, 3.0)
+    via = [[t.W, t.b, t.K, t.beta] for t in m.trees]
+    for slices in ([slice(0, 3), slice(3, 6), slice(6, 8)], [slice(0, 3), slice(6, 9), slice(3, 6)]):
+        with pytest.raises(ValueError, match="tile"):
+            talo_gap(L, team, m.groups, through=Through(a_st, slices, via))
+    with pytest.raises(ValueError, match="graph"):
+        talo_gap(L, team, m.groups, through=Through(a_st.detach(), m._through(a_st).slices, via))
 
 
 @pytest.mark.parametrize("name", ["happo", "sail_cbf"])

@@ -187,6 +187,41 @@ def test_team_trees_are_independent_and_log_std_is_a_parameter():
     assert team.log_std.shape == (9,) and team.log_std.requires_grad
 
 
+@pytest.mark.parametrize("split_k,leaf_k", [(0, 0), (1, 2)])
+def test_batched_team_forward_equals_each_tree_alone(split_k, leaf_k):
+    """The team runs its trees as one batched forward (common.policy.tree_torch.forest_forward
+    with a carrier axis); each tree alone is the same function with N = 1. Values, routes,
+    gradients and second derivatives (the HVP TALO takes) must agree carrier by carrier."""
+    team = _team(depth=3, seed=7, split_k=split_k, leaf_k=leaf_k).double()
+    obs = torch.randn(40, 3, 11, generator=torch.Generator().manual_seed(8), dtype=torch.float64)
+    v = torch.randn(40, 9, generator=torch.Generator().manual_seed(9), dtype=torch.float64)
+    params = list(team.parameters())
+
+    def grad_and_hvp(action):
+        loss = (torch.tanh(action) * v).sum()
+        g = torch.autograd.grad(loss, params, create_graph=True, allow_unused=True)
+        g = torch.cat([(torch.zeros_like(p) if x is None else x).reshape(-1) for x, p in zip(g, params)])
+        hvp = torch.autograd.grad(0.5 * g.pow(2).sum(), params, allow_unused=True)
+        return g.detach(), torch.cat([(torch.zeros_like(p) if x is None else x).reshape(-1)
+                                      for x, p in zip(hvp, params)])
+
+    batched = team(obs, tau=0.4)
+    alone = [tree(obs[:, i], tau=0.4) for i, tree in enumerate(team.trees)]
+    assert torch.equal(batched.action, torch.cat([o.action for o in alone], dim=1))
+    for key in ("leaf", "nodes", "sides"):
+        assert torch.equal(getattr(batched, key), torch.stack([getattr(o, key) for o in alone], dim=1))
+    g_b, h_b = grad_and_hvp(batched.action)
+    g_a, h_a = grad_and_hvp(torch.cat([o.action for o in alone], dim=1))
+    assert g_b.norm() > 0 and h_b.norm() > 0
+    torch.testing.assert_close(g_b, g_a, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(h_b, h_a, rtol=1e-12, atol=1e-14)
+
+
+def test_team_forward_rejects_a_wrong_observation_size():
+    with pytest.raises(ValueError, match="obs must be"):
+        _team()(torch.randn(4, 3, 10))
+
+
 def test_export_import_roundtrip():
     team = _team(seed=1)
     params = team.export_params()

@@ -48,7 +48,7 @@ from torch import Tensor, nn
 from common.algos.config import AlgoConfig, kappa_schedule, tau_schedule
 from common.algos.critic import TeamCritic, ValueNormalizer, compute_gae, next_values
 from common.algos.registry import method_spec
-from common.algos.talo import cosine, flat_grad, talo_gap, talo_project, unflatten_like
+from common.algos.talo import Through, cosine, flat_grad, talo_gap, talo_project, unflatten_like
 from common.policy.proposal import proposal_entropy, proposal_log_prob
 from common.policy.sail import SailConfig, sail_center_implicit, sail_project
 from common.policy.tree import TreeConfig
@@ -349,17 +349,17 @@ class Method:
     def _log_std(self) -> Tensor:
         return torch.cat([t.log_std for t in self.trees])
 
-    def _tree_actions(self, mb: Minibatch, tau: float, grad_carriers) -> Tensor:
-        """Stacked ST nominal actions a_ST [B, D]; carriers outside
-        ``grad_carriers`` are computed without a graph (detached partners)."""
-        blocks = []
-        for i, tree in enumerate(self.trees):
-            if i in grad_carriers:
-                blocks.append(tree(mb.obs[:, i], tau).action)
-            else:
-                with torch.no_grad():
-                    blocks.append(tree(mb.obs[:, i], tau).action)
-        return torch.cat(blocks, dim=-1)
+    def _tree_actions(self, mb: Minibatch, tau: float, grad: bool) -> Tensor:
+        """Stacked ST nominal actions a_ST [B, D], all trees in one batched forward;
+        ``grad=False``: without a graph."""
+        with torch.set_grad_enabled(grad):
+            return self.policy(mb.obs, tau).action
+
+    def _through(self, a_st: Tensor) -> Through:
+        """The route of ``talo_gap``'s coupled blocks: tree i reaches the surrogates only
+        through its block of a_ST, its log_std directly."""
+        return Through(a_st, [slice(CARRIER_ACT_DIM * i, CARRIER_ACT_DIM * (i + 1)) for i in range(self.n_agents)],
+                       [[t.W, t.b, t.K, t.beta] for t in self.trees])
 
     def _center(self, mb: Minibatch, a_st: Tensor, kappa: float,
                 x_star: Tensor | None = None) -> Tensor:
@@ -406,7 +406,7 @@ class Method:
 
     def _start_point(self, mb: Minibatch, tau: float, kappa: float):
         """Graph of the surrogates at the current parameters (all carriers attached)."""
-        a_st = self._tree_actions(mb, tau, range(self.n_agents))
+        a_st = self._tree_actions(mb, tau, grad=True)
         center = self._center(mb, a_st, kappa)
         log_ratio = self._log_ratio(mb, center, self._log_std())
         L_ind, L_team = self._surrogates(mb, log_ratio)
@@ -424,7 +424,7 @@ class Method:
         the forward (saves a SAIL solve) and g_ind (its first carrier's gradient)."""
         a_st, center, log_ratio, L_ind, L_team = self._start_point(mb, tau, kappa)
         g_ind, g_team, w, _ = talo_gap(L_ind, L_team, self.groups, separable=not self.uses_sail,
-                                       with_hvp=False)
+                                       with_hvp=False, through=self._through(a_st))
         start = StartPoint(a_st.detach().clone(), center.detach().clone(), log_ratio.detach(),
                            torch.stack(L_ind).detach(), g_ind)
         return self._gap_stats(g_ind, g_team, w, log_ratio, mb.active), start
@@ -434,10 +434,10 @@ class Method:
         for TALO methods, along g_ind for Joint+CBF; applied per ``cfg.talo_step``.
         Returns (stats, gap stats measured before the step)."""
         cfg = self.cfg
-        _, _, log_ratio, L_ind, L_team = self._start_point(mb, tau, kappa)
+        a_st, _, log_ratio, L_ind, L_team = self._start_point(mb, tau, kappa)
         # identity center: L_i depends on theta_i only -> one backward for g_ind
         g_ind, g_team, w, grad_w = talo_gap(L_ind, L_team, self.groups, separable=not self.uses_sail,
-                                            with_hvp=self.uses_talo)
+                                            with_hvp=self.uses_talo, through=self._through(a_st))
         entropy = self._entropy()
         g_ent = cfg.ent_coef * flat_grad(entropy.sum(), self.actor_params) if cfg.ent_coef > 0 \
             else torch.zeros_like(g_ind)
@@ -516,7 +516,7 @@ class Method:
             a_st_cache, center_cache = start.a_st, start.center
         else:
             with torch.no_grad():
-                a_st_cache = self._tree_actions(mb, tau, ())
+                a_st_cache = self._tree_actions(mb, tau, grad=False)
                 center_cache = self._center(mb, a_st_cache, kappa)   # forward at current params
         self.last_happo_factors = {}
         losses, kls, clips, ents, norms = [], [], [], [], []

@@ -39,6 +39,18 @@ finite difference against -8.6e-3 from autograd). ``grad W`` is exact only in
 the smooth directions; in the split directions it is a surrogate, like the ST
 gradient itself.
 
+Coupled surrogates through an intermediate (``Through``): with SAIL, every
+``L_i`` depends on every carrier's parameters, so block ``i`` of ``d`` needs its
+own backward pass, and each one walks the SAIL center and carrier ``i``'s tree.
+When the trees meet the surrogates only through their stacked actions ``z =
+a_ST`` (carrier ``i``'s block a function of ``theta_i`` alone), the chain rule
+gives the same blocks more cheaply: ``grad_{theta_i} L = (dL/dz_i) dz_i/dtheta_i``,
+so each ``L_i - L_team`` is differentiated only down to ``z`` (and to the
+carrier's direct parameters, ``log_std``), the ``N`` block cotangents are put
+side by side, and one vector-Jacobian product of ``z`` takes them through all
+trees at once. With ``create_graph`` the cotangents keep their own graphs, so
+the HVP is the same derivative of the same quantity (tests/test_talo_fast.py).
+
 Partner detachment: the paper forms ``grad_{theta_i} L_i`` with the partner
 nominal branches detached before the SAIL map. Because ``theta_i`` enters
 only carrier ``i``'s tree, the *value* of that partial derivative is the same
@@ -71,6 +83,48 @@ def flat_grad(output: Tensor, params: Sequence[Tensor], create_graph: bool = Fal
     return torch.cat(
         [(torch.zeros_like(p) if g is None else g).reshape(-1) for g, p in zip(grads, params)]
     )
+
+
+@dataclass(frozen=True)
+class Through:
+    """Where carrier ``i``'s parameters meet the surrogates: ``z`` (e.g. the stacked
+    tree actions a_ST [B, D]), whose slice ``slices[i]`` of the last axis is a function
+    of the parameters ``via[i]`` (a subset of group ``i``) and of nothing else that is
+    differentiated; the group's other parameters (``log_std``) enter the surrogates
+    directly. The slices must tile ``z``'s last axis in order."""
+    z: Tensor
+    slices: Sequence[slice]
+    via: ParamGroups
+
+
+def _blockwise_gradient(losses: Sequence[Tensor], groups: ParamGroups, create_graph: bool,
+                        through: Through | None) -> Tensor:
+    """``[grad_{theta_i} losses[i]]_i`` as one flat vector; see ``Through`` for the route."""
+    if through is None:
+        return torch.cat([flat_grad(L, g, create_graph) for L, g in zip(losses, groups)])
+    z = through.z
+    if not z.requires_grad:
+        raise ValueError("Through.z must carry the graph from the parameters in 'via'")
+    if len(through.slices) != len(groups) or len(through.via) != len(groups):
+        raise ValueError("Through needs one slice and one parameter list per group")
+    stops = [0] + [sl.stop for sl in through.slices]
+    if any(sl.start != a for sl, a in zip(through.slices, stops)) or stops[-1] != z.shape[-1]:
+        raise ValueError(f"Through slices must tile z's last axis ({z.shape[-1]}) in order")
+    direct = [[p for p in g if all(p is not q for q in via)] for g, via in zip(groups, through.via)]
+    found: dict[int, Tensor | None] = {}    # id(parameter) -> its block of the result
+    cotangents = []
+    for L, sl, params in zip(losses, through.slices, direct):
+        grads = torch.autograd.grad(L, [z, *params], create_graph=create_graph, retain_graph=True,
+                                    allow_unused=True) if L.requires_grad else (None,) * (1 + len(params))
+        cotangents.append(torch.zeros_like(z[..., sl]) if grads[0] is None else grads[0][..., sl])
+        found.update(zip(map(id, params), grads[1:]))
+    via_all = [p for via in through.via for p in via]
+    # one vector-Jacobian product of z: block i's cotangent reaches theta_i only
+    found.update(zip(map(id, via_all), torch.autograd.grad(
+        z, via_all, grad_outputs=torch.cat(cotangents, dim=-1), create_graph=create_graph,
+        retain_graph=True, allow_unused=True)))
+    return torch.cat([(torch.zeros_like(p) if found.get(id(p)) is None else found[id(p)]).reshape(-1)
+                      for g in groups for p in g])
 
 
 def individual_gradient(
@@ -151,12 +205,14 @@ class TaloResult:
 
 def talo_gap(
     losses: Sequence[Tensor], team_loss: Tensor, groups: ParamGroups,
-    separable: bool = False, with_hvp: bool = True,
+    separable: bool = False, with_hvp: bool = True, through: Through | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
     """Eq. (talo_gap): returns ``(g_ind, g_team, W_gap, grad_theta W_gap)``.
 
     ``with_hvp=False`` skips the double backward (diagnostics only) and
     returns ``None`` for the last entry; W_gap is computed the same way either way.
+    ``through`` (coupled surrogates only) takes the blocks of ``d`` by the route
+    ``Through`` describes: the same values and HVP, one pass through the trees.
     """
     _check_groups(losses, groups)
     params = [p for g in groups for p in g]
@@ -164,7 +220,7 @@ def talo_gap(
     if separable:   # block i of grad(sum_j L_j) is grad_{theta_i} L_i
         d = flat_grad(torch.stack(list(losses)).sum() - team_loss, params, create_graph=with_hvp)
     else:
-        d = torch.cat([flat_grad(L - team_loss, g, with_hvp) for L, g in zip(losses, groups)])
+        d = _blockwise_gradient([L - team_loss for L in losses], groups, with_hvp, through)
     g_team = flat_grad(team_loss, params)
     w_gap = 0.5 * d.pow(2).sum()
     # double backward: d/dtheta 1/2||d||^2 = J_d^T d, one Hessian-vector product

@@ -46,6 +46,80 @@ def st_top_k(x: torch.Tensor, k: int) -> torch.Tensor:
     return x * mask + (x - x.detach()) * (1.0 - mask)
 
 
+# ----------------------------------------------------------------------------- the forward, batched over carriers
+# Every function below takes a leading carrier axis N (N = 1 for one tree), so the
+# team's three trees run as one set of batched ops: the learner's backward and
+# double backward (TALO's HVP) then walk one graph of N-times larger tensors
+# instead of N graphs, which is what their cost scales with.
+
+
+def gate_margins(W, b, obs):
+    """w_k.o - b_k, float64 [N, B, n_internal] from W [N, n_internal, O], b [N, n_internal],
+    obs [N, B, O]; w_k = W_k / ||W_k|| (Eq. hard_gate)."""
+    W = W.double()
+    w = W / torch.linalg.vector_norm(W, dim=-1, keepdim=True)
+    return torch.baddbmm(-b.double()[:, None, :], obs.double(), w.transpose(1, 2))
+
+
+def leaf_preactivations(K, beta, obs):
+    """K_l o + beta_l for every leaf, float64 [N, B, n_leaves, A] from K [N, L, A, O]."""
+    N, L, A, O = K.shape
+    u = torch.baddbmm(beta.double().reshape(N, 1, L * A), obs.double(),
+                      K.double().reshape(N, L * A, O).transpose(1, 2))
+    return u.reshape(N, -1, L, A)
+
+
+def route(margins, depth: int):
+    """Hard routing (Eq. hard_gate) of margins [N, B, n_internal]: leaf [N, B],
+    nodes [N, B, D], sides [N, B, D] (True = right)."""
+    hard = margins > 0
+    node = torch.zeros(margins.shape[:2], dtype=torch.int64, device=margins.device)
+    nodes, sides = [], []
+    for _ in range(depth):
+        side = hard.gather(2, node[..., None])[..., 0]
+        nodes.append(node)
+        sides.append(side)
+        node = 2 * node + 1 + side.long()
+    return node - (2**depth - 1), torch.stack(nodes, -1), torch.stack(sides, -1)
+
+
+def st_leaf_weights(margins, tau: float, depth: int):
+    """Path products of g^ST (right) / 1 - g^ST (left), [N, B, n_leaves] float64;
+    the forward value is exactly the hard one-hot."""
+    p = torch.sigmoid(margins / tau)
+    g_st = (margins > 0).to(p.dtype) + (p - p.detach())  # Eq. (st_gate), forward exactly hard
+    N, B = margins.shape[:2]
+    weight = torch.ones_like(margins[..., :1])
+    for level in range(depth):
+        g = g_st[..., 2**level - 1 : 2**(level + 1) - 1]  # nodes of this level, left to right
+        weight = torch.stack([weight * (1.0 - g), weight * g], dim=-1).reshape(N, B, -1)
+    return weight
+
+
+def forest_forward(trees, obs, tau: float):
+    """N trees of one shape on obs [N, B, O]: action [N, B, A] (parameter dtype), leaf
+    [N, B], nodes and sides [N, B, D]. The action is sum_l weight_l (c_a + s_a tanh(K_l o
+    + beta_l)) (Eq. hard_tree_policy), written c_a + s_a sum_l weight_l tanh(.): the same
+    value (the weights are exactly one-hot) and the same derivatives (sum_l weight_l is
+    identically 1), with the leaf sum as one batched matrix product."""
+    if not float(tau) > 0:
+        raise ValueError(f"tree: tau must be > 0, got {tau}")
+    first = trees[0]
+
+    def stacked(name):
+        return torch.stack([getattr(t, name) for t in trees]) if len(trees) > 1 \
+            else getattr(first, name)[None]
+
+    margins = gate_margins(st_top_k(stacked("W"), first.split_k), stacked("b"), obs)
+    leaf, nodes, sides = route(margins.detach(), first.depth)
+    weight = st_leaf_weights(margins, tau, first.depth)                      # [N, B, L]
+    squashed = torch.tanh(leaf_preactivations(st_top_k(stacked("K"), first.leaf_k), stacked("beta"), obs))
+    N, B, L, A = squashed.shape
+    mixed = torch.bmm(weight.reshape(N * B, 1, L), squashed.reshape(N * B, L, A)).reshape(N, B, A)
+    action = stacked("c_a").double()[:, None] + stacked("s_a").double()[:, None] * mixed
+    return action.to(first.K.dtype), leaf, nodes, sides
+
+
 class HardObliqueTree(nn.Module):
     """One carrier's hard oblique tree; hard forward, straight-through backward.
     With ``config.split_k``/``leaf_k`` the forward (and the exported arrays the
@@ -82,48 +156,27 @@ class HardObliqueTree(nn.Module):
 
     def gate_margins(self, obs):
         """w_k.o - b_k for every internal node, float64 [B, n_internal] (see dtype policy)."""
-        W = self.split_W().double()
-        w = W / torch.linalg.vector_norm(W, dim=1, keepdim=True)   # ||w|| = 1 on the kept features
-        return obs.double() @ w.T - self.b.double()
+        return gate_margins(self.split_W()[None], self.b[None], obs[None])[0]
 
     def leaf_actions(self, obs):
         """c_a + s_a tanh(K_l o + beta_l) for every leaf, [B, n_leaves, act_dim] float64."""
-        u = torch.einsum("lao,bo->bla", self.leaf_K().double(), obs.double()) + self.beta.double()
+        u = leaf_preactivations(self.leaf_K()[None], self.beta[None], obs[None])[0]
         return self.c_a.double() + self.s_a.double() * torch.tanh(u)
 
     def route(self, margins):
         """Hard routing (Eq. hard_gate): leaf [B], nodes [B,D], sides [B,D] (True = right)."""
-        hard = margins > 0
-        node = torch.zeros(len(margins), dtype=torch.int64, device=margins.device)
-        nodes, sides = [], []
-        for _ in range(self.depth):
-            side = hard.gather(1, node[:, None])[:, 0]
-            nodes.append(node)
-            sides.append(side)
-            node = 2 * node + 1 + side.long()
-        return node - self.n_internal, torch.stack(nodes, 1), torch.stack(sides, 1)
+        leaf, nodes, sides = route(margins[None], self.depth)
+        return leaf[0], nodes[0], sides[0]
 
     def st_leaf_weights(self, margins, tau):
         """Path products of g^ST / 1 - g^ST, [B, n_leaves] float64; forward value = hard one-hot."""
-        p = torch.sigmoid(margins / tau)
-        g_st = (margins > 0).to(p.dtype) + (p - p.detach())  # Eq. (st_gate), forward exactly hard
-        weight = torch.ones_like(margins[:, :1])
-        for level in range(self.depth):
-            g = g_st[:, 2**level - 1 : 2**(level + 1) - 1]  # nodes of this level, left to right
-            weight = torch.stack([weight * (1.0 - g), weight * g], dim=2).reshape(len(margins), -1)
-        return weight
+        return st_leaf_weights(margins[None], tau, self.depth)[0]
 
     def forward(self, obs, tau: float = 1.0) -> TreeOutput:
         if obs.ndim != 2 or obs.shape[1] != self.obs_dim:
             raise ValueError(f"tree: obs must be [B,{self.obs_dim}], got {tuple(obs.shape)}")
-        if not float(tau) > 0:
-            raise ValueError(f"tree: tau must be > 0, got {tau}")
-        margins = self.gate_margins(obs)
-        leaf, nodes, sides = self.route(margins.detach())
-        weight = self.st_leaf_weights(margins, tau)
-        action = (weight[:, :, None] * self.leaf_actions(obs)).sum(1)  # Eq. (hard_tree_policy)
-        action = action.to(self.K.dtype)
-        return TreeOutput(action, leaf, nodes, sides)
+        action, leaf, nodes, sides = forest_forward([self], obs[None], tau)
+        return TreeOutput(action[0], leaf[0], nodes[0], sides[0])
 
     def export_arrays(self) -> dict[str, np.ndarray]:
         """The arrays actors run: W and K as the forward uses them (k-sparse where configured)."""
@@ -148,15 +201,12 @@ class TeamPolicy(nn.Module):
         return torch.cat([tree.log_std for tree in self.trees])
 
     def forward(self, obs, tau: float = 1.0) -> TreeOutput:
-        if obs.ndim != 3 or obs.shape[1] != self.n_agents:
-            raise ValueError(f"team: obs must be [B,{self.n_agents},obs_dim], got {tuple(obs.shape)}")
-        outs = [tree(obs[:, i], tau) for i, tree in enumerate(self.trees)]
-        return TreeOutput(
-            torch.cat([o.action for o in outs], dim=1),
-            torch.stack([o.leaf for o in outs], dim=1),
-            torch.stack([o.nodes for o in outs], dim=1),
-            torch.stack([o.sides for o in outs], dim=1),
-        )
+        if obs.ndim != 3 or obs.shape[1:] != (self.n_agents, self.obs_dim):
+            raise ValueError(f"team: obs must be [B,{self.n_agents},{self.obs_dim}], got {tuple(obs.shape)}")
+        action, leaf, nodes, sides = forest_forward(self.trees, obs.transpose(0, 1), tau)
+        B = obs.shape[0]
+        return TreeOutput(action.transpose(0, 1).reshape(B, -1), leaf.T, nodes.transpose(0, 1),
+                          sides.transpose(0, 1))
 
     def spec(self) -> ParamsSpec:
         return ParamsSpec(self.n_agents, self.obs_dim, self.act_dim, self.depth)
