@@ -7,7 +7,8 @@ hypothesis-drawn arrays (small, degenerate values), on random full-size batches 
 samples, 40 rows, about half violated, masked and zero rows, fixed human blocks, per-sample
 kappa, both dampings, 0 / 1 / 20 steps) and on the env's own safety rows, and its result must
 be as stationary as the reference's. The edge cases (kappa 0, no kept or violated row,
-n_newton 0, empty batch or row set) are exact.
+n_newton 0, empty batch or row set) are exact. The learner's implicit-step kernel
+(``sail_implicit_step``: H^{-1} and the offset at the solution) against numpy's inverse.
 """
 import numpy as np
 import pytest
@@ -18,7 +19,8 @@ from hypothesis.extra import numpy as hnp
 from common.env.batch_env import BatchEnv
 from common.env.config import EnvConfig
 from common.policy import sail_kernels
-from common.policy.sail import (SailConfig, absorb_fixed, normalize_rows, sail_project_np,
+from common.policy.sail import (SailConfig, absorb_fixed, normalize_rows, sail_implicit_step_np,
+                                sail_implicit_step_np_reference, sail_project_np,
                                 sail_project_np_reference)
 
 D = 9
@@ -231,3 +233,35 @@ def test_kernel_matches_reference_on_env_rows(name, human_slot):
         x = sail_project_np(a, C, c, mask, 10.0, fixed_mask=fm, fixed_action=human)
         seen_active += int(np.sum(np.any(x != a, axis=1)))
     assert seen_active > 0   # SAIL did move some centers on these rows
+
+
+# ----------------------------------------------------------------------------- the learner's implicit step
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("kappa", [0.0, 1.0, 30.0, 1000.0])
+def test_implicit_step_kernel_matches_numpy_inverse(seed, kappa):
+    """At the actors' solution x*: the same x* as ``sail_project_np`` (bit for bit), H^{-1}
+    and offset = x* - kappa C_J^T r_J as numpy computes them, H^{-1} H = I, and samples with
+    no active row (kappa 0, masked rows) exactly H^{-1} = I, offset = x*."""
+    rng = np.random.default_rng(seed)
+    a, C, c, mask = _random_problem(rng, 48, 30)
+    mask[:6] = False                                   # no kept row at all
+    fixed = np.zeros((48, D), bool)
+    fixed[::4, 3:6] = True
+    human = rng.uniform(-0.5, 0.5, (48, D))
+    x, H_inv, offset = sail_implicit_step_np(a, C, c, mask, kappa, fixed, human)
+    assert np.array_equal(x, sail_project_np(a, C, c, mask, kappa, fixed_mask=fixed, fixed_action=human))
+    H_ref, off_ref = sail_implicit_step_np_reference(x, C, c, mask, kappa, fixed, human)
+    np.testing.assert_allclose(H_inv, H_ref, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(offset, off_ref, rtol=0, atol=1e-12 * max(1.0, kappa))
+    assert np.array_equal(H_inv[:6], np.broadcast_to(np.eye(D), (6, D, D)))
+    assert np.array_equal(offset[:6], x[:6])
+    if kappa == 0.0:
+        assert np.array_equal(H_inv, np.broadcast_to(np.eye(D), H_inv.shape)) and np.array_equal(offset, x)
+    else:
+        assert np.any(H_inv[6:] != np.eye(D))           # some rows were active
+    # a given x* is used as is
+    x2, H2, _ = sail_implicit_step_np(a, C, c, mask, kappa, fixed, human, x_star=x + 0.1)
+    assert np.array_equal(x2, x + 0.1)
+    np.testing.assert_allclose(H2, sail_implicit_step_np_reference(x + 0.1, C, c, mask, kappa, fixed, human)[0],
+                               rtol=0, atol=1e-12)

@@ -55,7 +55,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from common.policy.sail_kernels import sail_newton
+from common.policy.sail_kernels import sail_implicit_step, sail_newton
 
 if TYPE_CHECKING:  # pragma: no cover
     import torch
@@ -188,6 +188,13 @@ def _prepare_np(a_st, C, c, mask, kappa, n_newton, damping, fixed_mask, fixed_ac
     return a, Cn, cn, keep, kappa, int(n_newton), damping
 
 
+def _kernel_args(a, Cn, cn, keep, kappa):
+    """One compiled signature: C-contiguous, aligned, writeable (a read-only a_st or the
+    broadcast kappa would otherwise be a new type, i.e. a fresh compile at run time)."""
+    return [np.require(v, dt, "CAW") for v, dt in ((a, np.float64), (Cn, np.float64), (cn, np.float64),
+                                                   (keep, np.bool_), (kappa, np.float64))]
+
+
 def sail_project_np(
     a_st,
     C,
@@ -207,11 +214,34 @@ def sail_project_np(
     `sail_project_np_reference` is the numpy loop it is tested against."""
     a, Cn, cn, keep, kappa, n_newton, damping = _prepare_np(
         a_st, C, c, mask, kappa, n_newton, damping, fixed_mask, fixed_action, config)
-    # one compiled signature: C-contiguous, aligned, writeable (a read-only a_st or the
-    # broadcast kappa would otherwise be a new type, i.e. a fresh compile at run time)
-    args = [np.require(v, dt, "CAW") for v, dt in ((a, np.float64), (Cn, np.float64), (cn, np.float64),
-                                                   (keep, np.bool_), (kappa, np.float64))]
-    return sail_newton(*args, n_newton, damping == "exact")
+    return sail_newton(*_kernel_args(a, Cn, cn, keep, kappa), n_newton, damping == "exact")
+
+
+def sail_implicit_step_np(a_st, C, c, mask, kappa, fixed_mask, fixed_action,
+                          config: SailConfig = _DEFAULT, x_star=None):
+    """The learner's implicit SAIL step at the actors' solution: ``(x_star, H_inv, offset)``
+    (see ``sail_center_implicit``). ``x_star`` is ``sail_project_np``'s answer for these
+    inputs (the same prepared rows and kernel, so the same bits), unless passed in."""
+    a, Cn, cn, keep, kappa, n_newton, damping = _prepare_np(
+        a_st, C, c, mask, kappa, None, None, fixed_mask, fixed_action, config)
+    args = _kernel_args(a, Cn, cn, keep, kappa)
+    if x_star is None:
+        x_star = sail_newton(*args, n_newton, damping == "exact")
+    H_inv, offset = sail_implicit_step(np.require(x_star, np.float64, "CAW"), *args[1:])
+    return x_star, H_inv, offset
+
+
+def sail_implicit_step_np_reference(x_star, C, c, mask, kappa, fixed_mask, fixed_action,
+                                    config: SailConfig = _DEFAULT):
+    """``sail_implicit_step_np``'s (H_inv, offset) at a given ``x_star`` in plain numpy."""
+    _, Cn, cn, keep, kappa, _, _ = _prepare_np(
+        x_star, C, c, mask, kappa, None, None, fixed_mask, fixed_action, config)
+    r = cn - np.einsum("bmd,bd->bm", Cn, x_star)
+    act = (r > 0) & keep
+    Ca = Cn * act[..., None]
+    H = np.eye(Cn.shape[-1]) + kappa[:, None, None] * np.einsum("bmd,bme->bde", Ca, Ca)
+    offset = x_star - kappa[:, None] * np.einsum("bm,bmd->bd", np.where(act, r, 0.0), Cn)
+    return np.linalg.inv(H), offset
 
 
 def sail_project_np_reference(
@@ -361,26 +391,21 @@ def sail_center_implicit(a_st: torch.Tensor, C: torch.Tensor, c: torch.Tensor, m
     whose value is x* (the gradient vanishes there) and whose Jacobian in
     a_ST is (I + kappa C_J^T C_J)^{-1}, Eq. (sail_jacobian) of the ideal
     minimizer. It equals the unrolled map's Jacobian once its last full
-    Newton step keeps the active set (see the module docstring), at the cost of one
-    batched 9x9 solve instead of differentiating every unrolled step.
+    Newton step keeps the active set (see the module docstring). All of the step
+    but a_ST is constant (x*, the rows, kappa), so it is affine in a_ST: H^{-1} and the
+    offset x* - kappa C_J^T r_J come from a compiled kernel with the solve
+    (``sail_implicit_step_np``), and the graph is one batched matrix-vector product,
+    whose backward and double backward (TALO's HVP) are products with the same
+    constant matrix. Differentiable in a_ST only (the rows are data).
     ``x_star`` may pass a forward solution already computed for these values.
     """
     import torch
 
     a64 = a_st.double()
-    if x_star is None:
-        x_star = torch.as_tensor(sail_project_np(
-            a64.detach().cpu().numpy(), C.cpu().numpy(), c.cpu().numpy(), mask.cpu().numpy(), kappa,
-            n_newton=config.n_newton, damping=config.damping,
-            fixed_mask=fixed.cpu().numpy(), fixed_action=human.cpu().numpy(), config=config,
-        ), dtype=torch.float64, device=a_st.device)
-    x_star = x_star.detach().double()
+    x_np, H_inv, offset = sail_implicit_step_np(
+        a64.detach().cpu().numpy(), C.detach().cpu().numpy(), c.detach().cpu().numpy(),
+        mask.cpu().numpy(), kappa, fixed.cpu().numpy(), human.detach().cpu().numpy(), config,
+        x_star=None if x_star is None else x_star.detach().double().cpu().numpy())
+    as_t = lambda v: torch.as_tensor(v, dtype=torch.float64, device=a_st.device)  # noqa: E731
     a = torch.where(fixed, human.double(), a64)
-    Cf, cf = absorb_fixed(C.double(), c.double(), fixed, human.double())
-    Cn, cn, keep = normalize_rows(Cf, cf, mask, config.row_tol)
-    r = cn - torch.einsum("bmd,bd->bm", Cn, x_star)
-    act = ((r > 0) & keep).double()
-    Ca = Cn * act[..., None]
-    H = torch.eye(a.shape[1], dtype=torch.float64) + kappa * torch.einsum("bmd,bme->bde", Ca, Ca)
-    grad = (x_star - a) - kappa * torch.einsum("bm,bmd->bd", r * act, Cn)
-    return x_star - torch.linalg.solve(H, grad[..., None])[..., 0]
+    return as_t(x_np) - (as_t(H_inv) @ (as_t(offset) - a)[..., None])[..., 0]

@@ -19,8 +19,12 @@ Masked and zero rows (``keep`` False) are dropped up front: in the reference the
 zero rows with zero right-hand side, never active, and add exact zeros to every sum.
 Likewise the gradient and H sum over the active rows only (in row order), and with no
 active row the solve is skipped: H = I, and dx = -grad is what the solve gives exactly.
-The kernel loops over the batch inside the compiled function (one core, no threads) and
-releases the interpreter lock (``nogil``), so it runs in an actor or learner thread beside
+``sail_implicit_step`` gives the learner the constants of its implicit step at a solution
+x* (``sail.sail_center_implicit``): H^{-1} over the rows active at x*, from the same
+Cholesky factor, and x* - kappa C_J^T r_J.
+
+Both kernels loop over the batch inside the compiled function (one core, no threads) and
+release the interpreter lock (``nogil``), so they run in an actor or learner thread beside
 the others.
 """
 from __future__ import annotations
@@ -63,9 +67,9 @@ def _residuals(Ck, ck, m, x, out):
 
 
 @njit(cache=True, inline="always")
-def _cholesky_solve(H, g, L, z, out):
-    """``out = -H^{-1} g`` for SPD ``H [d,d]`` (reads the lower triangle; factor in ``L``, scratch ``z``)."""
-    d = g.shape[0]
+def _cholesky_factor(H, L):
+    """Lower-triangular ``L`` with ``H = L L^T`` for SPD ``H [d,d]`` (reads the lower triangle)."""
+    d = H.shape[0]
     for j in range(d):
         acc = H[j, j]
         for k in range(j):
@@ -77,6 +81,13 @@ def _cholesky_solve(H, g, L, z, out):
             for k in range(j):
                 acc -= L[i, k] * L[j, k]
             L[i, j] = acc / ljj
+
+
+@njit(cache=True, inline="always")
+def _cholesky_solve(H, g, L, z, out):
+    """``out = -H^{-1} g`` for SPD ``H [d,d]`` (reads the lower triangle; factor in ``L``, scratch ``z``)."""
+    d = g.shape[0]
+    _cholesky_factor(H, L)
     for i in range(d):  # L z = g
         acc = g[i]
         for k in range(i):
@@ -233,3 +244,69 @@ def sail_newton(a, Cn, cn, keep, kappa, n_newton, exact_damping):
         for k in range(d):
             out[b, k] = x[k]
     return out
+
+
+@njit(cache=True, nogil=True)
+def sail_implicit_step(x_star, Cn, cn, keep, kappa):
+    """The constants of the learner's implicit SAIL step at a solution ``x_star [B,d]``
+    (same prepared rows as ``sail_newton``): ``H^{-1}`` with H = I + kappa C_J^T C_J over
+    the rows active at x* (kept, positive residual), and ``offset = x* - kappa C_J^T r_J``,
+    so that the step x* - H^{-1} [(x* - a) - kappa C_J^T r_J] is x* - H^{-1} (offset - a).
+    Returns (H_inv [B,d,d], offset [B,d]); H^{-1} = L^{-T} L^{-1} from the Cholesky factor."""
+    B, M, d = Cn.shape
+    H_inv = np.empty((B, d, d))
+    offset = np.empty((B, d))
+    H = np.empty((d, d))
+    L = np.zeros((d, d))
+    Li = np.empty((d, d))
+    r = np.empty(M)
+    ia = np.empty(M, dtype=np.int64)
+    for b in range(B):
+        kap = kappa[b]
+        Cb = Cn[b]
+        _residuals(Cb, cn[b], M, x_star[b], r)
+        na = 0
+        for j in range(M):   # the active rows, in order (as sail_newton sums them)
+            if keep[b, j] and r[j] > 0.0:
+                ia[na] = j
+                na += 1
+        for i in range(d):
+            acc = 0.0
+            for n in range(na):
+                acc += r[ia[n]] * Cb[ia[n], i]
+            offset[b, i] = x_star[b, i] - kap * acc
+            for k in range(i + 1):
+                H[i, k] = 0.0
+        for n in range(na):
+            j = ia[n]
+            for i in range(d):
+                cji = Cb[j, i]
+                for k in range(i + 1):
+                    H[i, k] += cji * Cb[j, k]
+        for i in range(d):
+            for k in range(i):
+                H[i, k] = kap * H[i, k]
+            H[i, i] = kap * H[i, i] + 1.0
+        if na == 0:   # H = I
+            for i in range(d):
+                for k in range(d):
+                    H_inv[b, i, k] = 1.0 if i == k else 0.0
+            continue
+        _cholesky_factor(H, L)                      # H = L L^T
+        for k in range(d):                          # Li = L^{-1} (lower triangular)
+            for i in range(d):
+                Li[i, k] = 0.0
+            Li[k, k] = 1.0 / L[k, k]
+            for i in range(k + 1, d):
+                acc = 0.0
+                for m in range(k, i):
+                    acc += L[i, m] * Li[m, k]
+                Li[i, k] = -acc / L[i, i]
+        for i in range(d):                          # H^{-1} = Li^T Li (symmetric)
+            for k in range(i + 1):
+                acc = 0.0
+                for m in range(i, d):
+                    acc += Li[m, i] * Li[m, k]
+                H_inv[b, i, k] = acc
+                H_inv[b, k, i] = acc
+    return H_inv, offset
