@@ -1,5 +1,6 @@
 """Service loops over a real in-process Zenoh session, with small fakes for
 the env, propose step, QP and method (tests/services_fakes.py)."""
+import json
 import sys
 import threading
 import time
@@ -67,6 +68,8 @@ def test_inprocess_end_to_end_publishes_versions_and_shields_every_action(tmp_pa
         assert env.executed and all((a[:, 0] >= 0.5 - 1e-12).all() for a in env.executed)
     run = Path(cfg.run_dir)
     assert (run / "metrics.jsonl").read_text().count("\n") == 3
+    for row in map(json.loads, (run / "metrics.jsonl").read_text().splitlines()):
+        assert 0.0 <= row["update_cpu_s"] <= row["update_s"] + 0.01   # thread CPU within the wall time
     assert (run / "metrics.csv").read_text().splitlines()[0].startswith("update,version")
     assert sample(reg, "sage_learner_updates_total", role="learner", actor_id="") == 3
     assert sample(reg, "sage_shield_requests_total", role="shield", actor_id="") > 0

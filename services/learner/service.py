@@ -436,9 +436,9 @@ class LearnerService(Service):
             if "success" in e:
                 self.recent_success.append(e["success"])
         lags = [self.version - b["version"] for b in bodies]
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), time.thread_time()
         diag = self.method.update(batch, self.progress())
-        dt = time.perf_counter() - t0
+        dt, cpu = time.perf_counter() - t0, time.thread_time() - cpu0
         self.update_s_total += dt
         self.updates += 1
         self.version += 1
@@ -447,7 +447,10 @@ class LearnerService(Service):
         self.m.updates.labels(**self.labels).inc()
         self.m.update_seconds.labels(**self.labels).observe(dt)
         row = {"update": self.updates, "version": self.version, "env_steps": self.env_steps,
-               "time_s": time.monotonic() - self._t_start, "update_s": dt, "progress": self.progress(),
+               "time_s": time.monotonic() - self._t_start, "update_s": dt,
+               # the update's own thread CPU time: below update_s where other threads or
+               # processes hold the core or the interpreter lock
+               "update_cpu_s": cpu, "progress": self.progress(),
                "batch_T": int(batch["reward"].shape[0]), "batch_K": int(batch["reward"].shape[1]),
                "lag_max": int(max(lags)), "chunks_stale": self.counts["stale"],
                "reward_mean": float(batch["reward"].mean()),
