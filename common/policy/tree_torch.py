@@ -105,6 +105,7 @@ def forest_forward(trees, obs, tau: float):
     if not float(tau) > 0:
         raise ValueError(f"tree: tau must be > 0, got {tau}")
     first = trees[0]
+    obs = obs.double()        # dtype policy: all tree arithmetic in float64
 
     def stacked(name):
         return torch.stack([getattr(t, name) for t in trees]) if len(trees) > 1 \
