@@ -265,3 +265,25 @@ def test_implicit_step_kernel_matches_numpy_inverse(seed, kappa):
     assert np.array_equal(x2, x + 0.1)
     np.testing.assert_allclose(H2, sail_implicit_step_np_reference(x + 0.1, C, c, mask, kappa, fixed, human)[0],
                                rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_row_preparation_kernel_matches_numpy(seed):
+    """``sail_prepare`` (one compiled pass) against ``absorb_fixed`` + ``normalize_rows``:
+    the same unit rows, right-hand sides, kept rows and human-substituted a, with and
+    without fixed blocks, masked and zero rows, row scales 1e-3..1e3."""
+    from common.policy.sail import _prepare_np
+    rng = np.random.default_rng(seed)
+    a, C, c, mask = _random_problem(rng, 40, 25)
+    fixed = np.zeros((40, D), bool)
+    fixed[::3, 3 * (seed % 3):3 * (seed % 3) + 3] = True
+    human = rng.uniform(-0.5, 0.5, (40, D))
+    for fm, fa in ((None, None), (fixed, human), (fixed[0], human)):
+        got = _prepare_np(a, C, c, mask, 2.0, None, None, fm, fa, SailConfig())
+        ref = _prepare_np(a, C, c, mask, 2.0, None, None, fm, fa, SailConfig(), compiled=False)
+        assert np.array_equal(got[0], ref[0]) and np.array_equal(got[3], ref[3])
+        np.testing.assert_allclose(got[1], ref[1], rtol=1e-14, atol=1e-15)
+        np.testing.assert_allclose(got[2], ref[2], rtol=1e-12, atol=1e-12)
+        assert np.all(got[1][~got[3]] == 0) and np.all(got[2][~got[3]] == 0)
+    with pytest.raises(ValueError, match="fixed_action"):
+        _prepare_np(a, C, c, mask, 2.0, None, None, fixed, None, SailConfig())

@@ -55,7 +55,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from common.policy.sail_kernels import sail_implicit_step, sail_newton
+from common.policy.sail_kernels import sail_implicit_step, sail_newton, sail_prepare
 
 if TYPE_CHECKING:  # pragma: no cover
     import torch
@@ -160,9 +160,12 @@ def _line_search_np(x, dx, a, Cn, cn, kappa):
     return np.where(slope > 0, np.clip(t, lo, hi), 1.0)
 
 
-def _prepare_np(a_st, C, c, mask, kappa, n_newton, damping, fixed_mask, fixed_action, config):
+def _prepare_np(a_st, C, c, mask, kappa, n_newton, damping, fixed_mask, fixed_action, config,
+                compiled: bool = True):
     """Validation, fixed-block absorption and row normalization shared by the kernel and its
-    reference. Returns (a, Cn, cn, keep, kappa [B], n_newton, damping)."""
+    reference. Returns (a, Cn, cn, keep, kappa [B], n_newton, damping). ``compiled``: the
+    absorption and normalization in one compiled pass (``sail_kernels.sail_prepare``), else
+    in numpy (``absorb_fixed``, ``normalize_rows``: the references' path)."""
     n_newton = config.n_newton if n_newton is None else n_newton
     damping = config.damping if damping is None else damping
     a = np.asarray(a_st, dtype=np.float64)
@@ -179,6 +182,16 @@ def _prepare_np(a_st, C, c, mask, kappa, n_newton, damping, fixed_mask, fixed_ac
     kappa = np.broadcast_to(np.asarray(kappa, dtype=np.float64), (a.shape[0],))
     if not np.all(np.isfinite(kappa)) or np.any(kappa < 0):
         raise ValueError(f"sail: kappa must be finite and >= 0, got {kappa}")
+    if fixed_mask is not None and fixed_action is None:
+        raise ValueError("sail: fixed_mask needs fixed_action (the human's measured action)")
+    if compiled:
+        fixed = np.zeros(a.shape, bool) if fixed_mask is None else np.asarray(fixed_mask, dtype=bool)
+        human = a if fixed_mask is None else np.asarray(fixed_action, dtype=np.float64)
+        a, Cn, cn, keep = sail_prepare(*(_kernel_array(v, shape, dt) for v, shape, dt in (
+            (a, a.shape, np.float64), (C, C.shape, np.float64), (c, c.shape, np.float64),
+            (mask, mask.shape, np.bool_), (fixed, a.shape, np.bool_), (human, a.shape, np.float64))),
+            float(config.row_tol))
+        return a, Cn, cn, keep, kappa, int(n_newton), damping
     if fixed_mask is not None:  # human block held fixed: SAIL acts on the robot subspace
         fixed = np.broadcast_to(np.asarray(fixed_mask, dtype=bool), a.shape)
         human = np.broadcast_to(np.asarray(fixed_action, dtype=np.float64), a.shape)
@@ -188,11 +201,20 @@ def _prepare_np(a_st, C, c, mask, kappa, n_newton, damping, fixed_mask, fixed_ac
     return a, Cn, cn, keep, kappa, int(n_newton), damping
 
 
+def _kernel_array(v, shape, dtype):
+    """``v`` as the one array type the kernels are compiled for (C-contiguous, aligned,
+    writeable, of ``shape`` and ``dtype``): as is when it already is one (the common case,
+    checked by flags; np.require would cost more than the kernel), else a copy."""
+    if v.dtype == dtype and v.shape == shape and v.flags.c_contiguous and v.flags.aligned and v.flags.writeable:
+        return v
+    return np.array(np.broadcast_to(v, shape), dtype=dtype, order="C")
+
+
 def _kernel_args(a, Cn, cn, keep, kappa):
     """One compiled signature: C-contiguous, aligned, writeable (a read-only a_st or the
     broadcast kappa would otherwise be a new type, i.e. a fresh compile at run time)."""
-    return [np.require(v, dt, "CAW") for v, dt in ((a, np.float64), (Cn, np.float64), (cn, np.float64),
-                                                   (keep, np.bool_), (kappa, np.float64))]
+    return [_kernel_array(v, v.shape, dt) for v, dt in ((a, np.float64), (Cn, np.float64), (cn, np.float64),
+                                                        (keep, np.bool_), (kappa, np.float64))]
 
 
 def sail_project_np(
@@ -235,7 +257,7 @@ def sail_implicit_step_np_reference(x_star, C, c, mask, kappa, fixed_mask, fixed
                                     config: SailConfig = _DEFAULT):
     """``sail_implicit_step_np``'s (H_inv, offset) at a given ``x_star`` in plain numpy."""
     _, Cn, cn, keep, kappa, _, _ = _prepare_np(
-        x_star, C, c, mask, kappa, None, None, fixed_mask, fixed_action, config)
+        x_star, C, c, mask, kappa, None, None, fixed_mask, fixed_action, config, compiled=False)
     r = cn - np.einsum("bmd,bd->bm", Cn, x_star)
     act = (r > 0) & keep
     Ca = Cn * act[..., None]
@@ -256,9 +278,9 @@ def sail_project_np_reference(
     fixed_action=None,
     config: SailConfig = _DEFAULT,
 ) -> np.ndarray:
-    """`sail_project_np` with the Newton loop in vectorized numpy (the kernel's reference)."""
+    """`sail_project_np` in vectorized numpy, the row preparation included (the kernels' reference)."""
     a, Cn, cn, keep, kappa, n_newton, damping = _prepare_np(
-        a_st, C, c, mask, kappa, n_newton, damping, fixed_mask, fixed_action, config)
+        a_st, C, c, mask, kappa, n_newton, damping, fixed_mask, fixed_action, config, compiled=False)
     eye = np.eye(a.shape[1])
     x = a.copy()
     todo = np.arange(len(a))  # samples not yet at their exact minimizer

@@ -23,7 +23,10 @@ active row the solve is skipped: H = I, and dx = -grad is what the solve gives e
 x* (``sail.sail_center_implicit``): H^{-1} over the rows active at x*, from the same
 Cholesky factor, and x* - kappa C_J^T r_J.
 
-Both kernels loop over the batch inside the compiled function (one core, no threads) and
+``sail_prepare`` is the row preparation both solvers start from (fixed columns absorbed,
+rows normalized), one pass instead of numpy's dozen calls.
+
+The kernels loop over the batch inside the compiled function (one core, no threads) and
 release the interpreter lock (``nogil``), so they run in an actor or learner thread beside
 the others.
 """
@@ -310,3 +313,38 @@ def sail_implicit_step(x_star, Cn, cn, keep, kappa):
                 H_inv[b, i, k] = acc
                 H_inv[b, k, i] = acc
     return H_inv, offset
+
+
+@njit(cache=True, nogil=True)
+def sail_prepare(a, C, c, mask, fixed, human, row_tol):
+    """``sail._prepare_np``'s row preparation in one pass (its numpy twin: ``absorb_fixed`` then
+    ``normalize_rows``): the fixed (human) columns of each row moved to the right-hand side,
+    c_j - sum_{k fixed} C_jk h_k, and zeroed; each row with ||C_j|| > row_tol and unmasked
+    scaled to unit norm (with its right-hand side), the others zeroed and not kept; the fixed
+    entries of a replaced by the human's. a, fixed, human [B,d], C [B,M,d], c, mask [B,M].
+    Returns (a, Cn, cn, keep)."""
+    B, M, d = C.shape
+    a_out = np.empty((B, d))
+    Cn = np.empty((B, M, d))
+    cn = np.empty((B, M))
+    keep = np.empty((B, M), dtype=np.bool_)
+    for b in range(B):
+        for k in range(d):
+            a_out[b, k] = human[b, k] if fixed[b, k] else a[b, k]
+        for j in range(M):
+            shift = 0.0
+            sq = 0.0
+            for k in range(d):
+                v = C[b, j, k]
+                if fixed[b, k]:
+                    shift += v * human[b, k]
+                else:
+                    sq += v * v
+            norm = math.sqrt(sq)
+            kept = mask[b, j] and norm > row_tol
+            keep[b, j] = kept
+            inv = 1.0 / norm if kept else 0.0
+            for k in range(d):
+                Cn[b, j, k] = 0.0 if fixed[b, k] else C[b, j, k] * inv
+            cn[b, j] = (c[b, j] - shift) * inv
+    return a_out, Cn, cn, keep
