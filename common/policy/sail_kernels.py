@@ -106,6 +106,26 @@ def _cholesky_solve(H, g, L, z, out):
 
 
 @njit(cache=True, inline="always")
+def _penalty_hessian(Ck, ia, na, kap, H):
+    """Lower triangle of H = I + kappa C_A^T C_A over the active rows ``Ck[ia[:na]]``,
+    summed in row order."""
+    d = H.shape[0]
+    for i in range(d):
+        for k in range(i + 1):
+            H[i, k] = 0.0
+    for n in range(na):
+        j = ia[n]
+        for i in range(d):
+            cji = Ck[j, i]
+            for k in range(i + 1):
+                H[i, k] += cji * Ck[j, k]
+    for i in range(d):
+        for k in range(i):
+            H[i, k] = kap * H[i, k]
+        H[i, i] = kap * H[i, i] + 1.0
+
+
+@njit(cache=True, inline="always")
 def _dphi(t, g0, q, kap, r, s, m):
     """phi'(t) = g0 + t q - kappa sum_j [r_j - t s_j]_+ s_j (``_line_search_np``'s ``dphi``)."""
     acc = 0.0
@@ -212,20 +232,8 @@ def sail_newton(a, Cn, cn, keep, kappa, n_newton, exact_damping):
             if na == 0:  # H = I: the Cholesky solve gives exactly -grad
                 for k in range(d):
                     dx[k] = -g[k]
-            else:  # H = I + kappa C_A^T C_A (lower triangle; the rows summed in order)
-                for i in range(d):
-                    for k in range(i + 1):
-                        H[i, k] = 0.0
-                for n in range(na):
-                    j = ia[n]
-                    for i in range(d):
-                        cji = Ck[j, i]
-                        for k in range(i + 1):
-                            H[i, k] += cji * Ck[j, k]
-                for i in range(d):
-                    for k in range(i):
-                        H[i, k] = kap * H[i, k]
-                    H[i, i] = kap * H[i, i] + 1.0
+            else:
+                _penalty_hessian(Ck, ia, na, kap, H)
                 _cholesky_solve(H, g, L, z, dx)
             for k in range(d):
                 y[k] = x[k] + dx[k]
@@ -278,18 +286,7 @@ def sail_implicit_step(x_star, Cn, cn, keep, kappa):
             for n in range(na):
                 acc += r[ia[n]] * Cb[ia[n], i]
             offset[b, i] = x_star[b, i] - kap * acc
-            for k in range(i + 1):
-                H[i, k] = 0.0
-        for n in range(na):
-            j = ia[n]
-            for i in range(d):
-                cji = Cb[j, i]
-                for k in range(i + 1):
-                    H[i, k] += cji * Cb[j, k]
-        for i in range(d):
-            for k in range(i):
-                H[i, k] = kap * H[i, k]
-            H[i, i] = kap * H[i, i] + 1.0
+        _penalty_hessian(Cb, ia, na, kap, H)
         if na == 0:   # H = I
             for i in range(d):
                 for k in range(d):
