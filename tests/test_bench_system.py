@@ -21,6 +21,8 @@ from sage.bench.system import (
     SystemBench,
     SystemBenchConfig,
     config_from_args,
+    cpu_budget,
+    process_cpu_s,
     quantiles_ms,
     register,
     summary_table,
@@ -95,6 +97,59 @@ def test_step_meter_rates_the_learners_update_share_each_shards_qps_and_the_acto
     assert r["actor/0/shield_wait_s"] == pytest.approx(0.1, rel=0.05)
     assert r["actor/0/loop_cpu_s"] == pytest.approx(0.85, rel=0.05)
     assert r["shield/0/rows"] == pytest.approx(300.0, rel=0.05) and r["shield/1/rows"] == pytest.approx(50.0, rel=0.05)
+
+
+def test_step_meter_takes_each_components_cores_over_the_same_window():
+    meter = StepMeter("runA")
+    t0 = time.monotonic()
+    stop = threading.Event()
+
+    def feed():
+        while not stop.is_set():
+            meter.on_status("k", status_msg("runA", "actor", "0", 1 + int(100 * (time.time() - t0))))
+            stop.wait(0.01)
+
+    def cpu():   # a component that used 0.75 of a core all along, one that used none
+        return {"actor-0": 0.75 * (time.monotonic() - t0), "router": 2.0}
+
+    th = threading.Thread(target=feed, daemon=True)
+    th.start()
+    try:
+        meter.measure(1, warmup_s=0.05, measure_s=0.5, timeout_s=10, cpu=cpu)
+    finally:
+        stop.set()
+        th.join()
+    assert meter.window_cores["actor-0"] == pytest.approx(0.75, rel=0.02)
+    assert meter.window_cores["router"] == 0.0
+
+
+def test_cpu_budget_is_the_cost_of_an_env_step_and_the_rate_the_cores_allow():
+    b = cpu_budget({"learner-0": 0.9, "actor-0": 0.8, "shield-0": 0.3}, env_steps_per_s=2000.0,
+                   host_cpus=2, physics_bound=5000.0)
+    assert b["core_us_per_env_step"] == pytest.approx({"actor-0": 400.0, "learner-0": 450.0, "shield-0": 150.0})
+    assert b["core_us_per_env_step_total"] == pytest.approx(1000.0)
+    # 1,000 core-us per step on 2 cores: at most 2,000 steps/s, 0.4 of the physics bound
+    assert b["cpu_bound_env_steps_per_s"] == pytest.approx(2000.0)
+    assert b["cpu_bound_ratio_to_physics_bound"] == pytest.approx(0.4)
+    assert cpu_budget({}, 100.0, 2, 1.0) == {} and cpu_budget({"a": 1.0}, 0.0, 2, 1.0) == {}
+
+
+def test_process_cpu_s_reads_a_live_process_and_none_otherwise():
+    import os
+    import subprocess
+    import sys
+    if not os.path.exists(f"/proc/{os.getpid()}/stat"):
+        pytest.skip("no /proc on this system")
+    before = process_cpu_s(os.getpid())
+    deadline = time.process_time() + 0.3
+    while time.process_time() < deadline:   # burn 0.3 s of this process's CPU
+        pass
+    after = process_cpu_s(os.getpid())
+    assert after - before == pytest.approx(0.3, abs=0.05)
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    child.wait()
+    assert process_cpu_s(child.pid) is None      # reaped: gone
+    assert process_cpu_s(-1) is None
 
 
 def test_step_meter_times_out_and_propagates_failures():
@@ -200,7 +255,8 @@ def test_command_line_and_table():
         config_from_args(p.parse_args(["bench", "system", "--methods", "nope"]))
     one = {"multiprocess": 120.0, "inprocess": 60.0, "multiprocess_ratio_to_physics_bound": 0.3,
            "inprocess_ratio_to_physics_bound": 0.15, "learner_update_share": 0.4,
-           "inprocess_learner_update_share": None, "restarts": {}, "inprocess_failures": []}
+           "inprocess_learner_update_share": None, "restarts": {}, "inprocess_failures": [],
+           "cpu": cpu_budget({"actor-0": 0.5, "learner-0": 0.7}, 120.0, 2, 400.0), "inprocess_cpu": {}}
     result = {"physics_bound_env_steps_per_s": 400.0, "system": {"sage": {"1": one}},
               "shards": {"2": {"4": {"actor_env_steps_per_s": 900.0, "qps_served": 880.0, "qps_per_shard": {}}}},
               "shield_rtt_ms": {"8": {"p50": 3.9, "p99": 4.3, "inprocess_p50": 3.4, "inprocess_p99": 3.9,
@@ -215,3 +271,5 @@ def test_command_line_and_table():
     assert "ratio 0.83" in table and "B=8" in table and "27547 B" in table and "91000 / 9100" in table
     assert "full rows 150.0" in table and "synchronous 170.0" in table
     assert "sage" in table and "(0.30,  0.40)" in table and "2 shard(s), 4 actors" in table
+    assert "actor-0 4167, learner-0 5833; total 10000 -> the host's cores allow 200 (0.50 x bound)" in table
+    assert "in-process core-us" not in table

@@ -178,11 +178,13 @@ class StepMeter:
         return {k: (v1 - s0[k][1]) / (t1 - s0[k][0]) for k, (t1, v1) in s1.items() if k in s0 and t1 > s0[k][0]}
 
     def measure(self, n_actors: int, warmup_s: float, measure_s: float, timeout_s: float,
-                alive=lambda: None) -> float:
+                alive=lambda: None, cpu=None) -> float:
         """Wait until ``n_actors`` actors stepped, let them run ``warmup_s``,
         then sum over actors of steps/s between two snapshots ``measure_s``
         apart (each actor's own clock); the other counters' rates of the same
-        window are left in ``window_rates``. ``alive()`` raises if the system broke."""
+        window are left in ``window_rates``. ``alive()`` raises if the system broke.
+        ``cpu()`` (optional) returns CPU seconds so far by component; the cores each
+        used over the same window are left in ``window_cores``."""
         deadline = time.monotonic() + timeout_s
         while not self.stepping(n_actors):
             alive()
@@ -191,11 +193,48 @@ class StepMeter:
             time.sleep(0.05)
         time.sleep(warmup_s)
         s0, c0 = self.snapshot(), self.counter_snapshot()
+        p0, t0 = (cpu() if cpu else {}), time.monotonic()
         time.sleep(measure_s)
         alive()
         s1, c1 = self.snapshot(), self.counter_snapshot()
+        p1, t1 = (cpu() if cpu else {}), time.monotonic()
         self.window_rates = self.rates(c0, c1)
+        self.window_cores = {k: (v - p0[k]) / (t1 - t0) for k, v in p1.items() if k in p0}
         return sum(self.rates(s0, s1).values())
+
+
+# ----------------------------------------------------------------- where the cores go
+def host_cpus() -> int:
+    """The CPUs this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def process_cpu_s(pid: int) -> float | None:
+    """User + system CPU seconds of a live process, all its threads (Linux
+    ``/proc/<pid>/stat``, clock-tick resolution); None where unreadable."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            fields = f.read().rsplit(b")", 1)[1].split()   # the name may hold spaces and ')'
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+def cpu_budget(cores: dict[str, float], env_steps_per_s: float, host_cpus: int, physics_bound: float) -> dict:
+    """What an env step costs the host, from the cores each component used
+    while the system made ``env_steps_per_s``: core-microseconds per env step
+    by component and in all, and the rate the host's cores would allow at
+    that cost if nothing ever waited (``cpu_bound_env_steps_per_s``: host CPUs
+    / total cost), also as a fraction of the physics bound. A configuration
+    whose CPU bound is below a target cannot reach it by scheduling alone."""
+    if not env_steps_per_s > 0 or not cores:
+        return {}
+    per_step = {k: v / env_steps_per_s * 1e6 for k, v in sorted(cores.items())}
+    total = sum(per_step.values())
+    bound = host_cpus * 1e6 / total if total > 0 else float("inf")
+    return {"cores_used": dict(sorted(cores.items())), "core_us_per_env_step": per_step,
+            "core_us_per_env_step_total": total, "cpu_bound_env_steps_per_s": bound,
+            "cpu_bound_ratio_to_physics_bound": bound / physics_bound}
 
 
 # ----------------------------------------------------------------- the actor with a local QP
@@ -304,6 +343,17 @@ class SystemBench:
             if sup.poll() is not None or any(c.state in ("failed", "done") for c in sup.children):
                 bad = {c.spec.name: (c.state, c.last_code) for c in sup.children if c.state != "running"}
                 raise RuntimeError(f"a service exited during the benchmark: {bad}; logs in {sup.log_dir}")
+
+    def cpu_probe(self) -> dict[str, float]:
+        """CPU seconds so far of every running supervised service, by service name."""
+        out = {}
+        for sup in self._sups:
+            for c in sup.children:
+                if c.proc is not None and c.proc.poll() is None:
+                    used = process_cpu_s(c.proc.pid)
+                    if used is not None:
+                        out[c.spec.name] = used
+        return out
 
     def restarts(self) -> dict[str, int]:
         return {c.spec.name: c.starts - 1 for sup in self._sups for c in sup.children if c.starts > 1}
@@ -549,7 +599,7 @@ class SystemBench:
         connect = [f"tcp/127.0.0.1:{port}"]
         cfg, path = self.train_config(counts[-1], connect, "sys", method=method, learner_defaults=True)
         run = Path(cfg.run_dir)
-        multi, learner_busy, restarts, have = {}, {}, {}, 0
+        multi, learner_busy, cores, restarts, have = {}, {}, {}, {}, 0
         self.supervise([router_spec(port), *service_specs(path, roles=("shield", "learner"))], run, restart_budget=5)
         bus = Bus.open(connect=connect, mode="client")
         try:
@@ -561,19 +611,22 @@ class SystemBench:
                                restart_budget=5)
                 have = n
                 multi[n] = meter.measure(n, self.cfg.warmup_s, self.cfg.measure_s, self.cfg.start_timeout_s,
-                                         self.check)
+                                         self.check, cpu=self.cpu_probe)
                 learner_busy[n] = meter.window_rates.get("learner/update_s")
+                cores[n] = meter.window_cores
                 restarts[n] = self.restarts()
         finally:
             bus.close()
             self.stop_all()
-        inproc, inproc_busy, failures = self._inprocess_system(counts, method)
-        bound = self.physics_bound
+        inproc, inproc_busy, inproc_cores, failures = self._inprocess_system(counts, method)
+        bound, cpus = self.physics_bound, host_cpus()
         return {str(n): {"multiprocess": multi[n], "inprocess": inproc[n],
                          "multiprocess_ratio_to_physics_bound": multi[n] / bound,
                          "inprocess_ratio_to_physics_bound": inproc[n] / bound,
                          # seconds inside updates per second of wall time; 1 - this = waiting for data
                          "learner_update_share": learner_busy[n], "inprocess_learner_update_share": inproc_busy[n],
+                         "cpu": cpu_budget(cores[n], multi[n], cpus, bound),
+                         "inprocess_cpu": cpu_budget(inproc_cores[n], inproc[n], cpus, bound),
                          "restarts": restarts[n], "inprocess_failures": failures[n]}
                 for n in counts}
 
@@ -592,7 +645,7 @@ class SystemBench:
 
         meter = StepMeter(cfg.run_id)
         bus.subscribe(keys.status_all(cfg.run_id), meter.on_status)
-        out, busy, failures, have = {}, {}, {}, 0
+        out, busy, cores, failures, have = {}, {}, {}, {}, 0
         try:
             group.start(ShieldService(cfg, bus, 0, stop=group.stop), stop_all_on_error=False)
             group.start(LearnerService(cfg, bus, 0, stop=group.stop), stop_all_on_error=False)
@@ -601,13 +654,15 @@ class SystemBench:
                 for i in range(have, n):
                     group.start(ActorService(cfg, bus, i, stop=group.stop), stop_all_on_error=False)
                 have = n
-                out[n] = meter.measure(n, self.cfg.warmup_s, self.cfg.measure_s, self.cfg.start_timeout_s, alive)
+                out[n] = meter.measure(n, self.cfg.warmup_s, self.cfg.measure_s, self.cfg.start_timeout_s, alive,
+                                       cpu=lambda: {"process": time.process_time()})
                 busy[n] = meter.window_rates.get("learner/update_s")
+                cores[n] = meter.window_cores
                 failures[n] = [f"{who}: {exc!r}"[:300] for who, exc in group.errors]
         finally:
             group.join(15)
             bus.close()
-        return out, busy, failures
+        return out, busy, cores, failures
 
     # ------------------------------------------------------------- phase 3: shield shards
     def shards_phase(self) -> dict:
@@ -652,7 +707,7 @@ class SystemBench:
     def run(self) -> dict:
         t0 = time.monotonic()
         out = {"bench": "system", "config": asdict(self.cfg),
-               "host": {"cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()}}
+               "host": {"cpus": host_cpus()}}
         try:
             # the one-core raw physics bound of the actors' batch, measured here
             raw = bench_env(self.cfg.scenario, num_envs=self.cfg.envs_per_actor, steps=50, seed=self.cfg.seed)
@@ -758,6 +813,13 @@ def summary_table(r: dict) -> str:
                          f"{_share(v['learner_update_share'])})      {v['inprocess']:9.1f} "
                          f"({v['inprocess_ratio_to_physics_bound']:.2f}, {_share(v['inprocess_learner_update_share'])})"
                          f"{note}")
+            for where, budget in (("multi-process", v.get("cpu")), ("in-process", v.get("inprocess_cpu"))):
+                if budget:
+                    parts = ", ".join(f"{k} {us:.0f}" for k, us in budget["core_us_per_env_step"].items())
+                    lines.append(f"      {where} core-us per env step: {parts}; total "
+                                 f"{budget['core_us_per_env_step_total']:.0f} -> the host's cores allow "
+                                 f"{budget['cpu_bound_env_steps_per_s']:.0f} "
+                                 f"({budget['cpu_bound_ratio_to_physics_bound']:.2f} x bound)")
     lines.append("shield shards          actor env steps/s   QPs/s served")
     for k, by_n in r["shards"].items():
         for n, v in by_n.items():
