@@ -3,7 +3,8 @@ one-graph W_gap / HVP of ``talo_gap`` (d = g_ind - g_team taken directly as the
 gradient of L_i - L_team) against g_ind and g_team each with
 ``create_graph=True`` and the double backward of 1/2 ||g_ind - g_team||^2 through
 both; the coupled blocks taken through a_ST (``Through``) against one backward
-per carrier; the HAPPO step reusing the diagnostics' g_ind against recomputing it."""
+per carrier; the HAPPO step reusing the diagnostics' g_ind and its SAIL solves against
+recomputing them."""
 from __future__ import annotations
 
 import numpy as np
@@ -137,6 +138,31 @@ def test_happo_step_reusing_the_diagnostics_gradient_is_the_plain_step(name):
     sa = a._happo_step(mb, 0.5, 3.0, order=order, start=start)
     sb = b._happo_step(mb, 0.5, 3.0, order=order)
     assert not torch.equal(flat(a), flat(prepared_double(name)[0]))   # a step was taken
+    torch.testing.assert_close(flat(a), flat(b), rtol=1e-9, atol=1e-12)
+    for i in order:
+        torch.testing.assert_close(a.last_happo_factors[i], b.last_happo_factors[i], rtol=1e-9, atol=1e-12)
+    assert sa == pytest.approx(sb, rel=1e-9, abs=1e-12)
+
+
+def test_sequential_sail_steps_are_reused_with_the_same_result(monkeypatch):
+    """sail_cbf's HAPPO step builds each carrier's graph on the SAIL step its
+    refresh solved (one solve per carrier after the first, none repeated): the same
+    parameters, factors and statistics as solving every center afresh."""
+    from common.algos import methods
+
+    calls = []
+    counted = methods.sail_step
+    monkeypatch.setattr(methods, "sail_step", lambda *a, **k: calls.append(1) or counted(*a, **k))
+    (a, mb), (b, _) = prepared_double("sail_cbf"), prepared_double("sail_cbf")
+    fresh = b._center
+    b._center = lambda mb, a_st, kappa, step=None: fresh(mb, a_st, kappa)   # ignores any step given
+    order = [1, 2, 0]
+    _, start_a = a._gap_diagnostics(mb, 0.5, 3.0)
+    calls.clear()
+    sa = a._happo_step(mb, 0.5, 3.0, order=order, start=start_a)
+    assert len(calls) == 2            # the refreshes after carriers 1 and 2; their graphs reuse them
+    _, start_b = b._gap_diagnostics(mb, 0.5, 3.0)
+    sb = b._happo_step(mb, 0.5, 3.0, order=order, start=start_b)
     torch.testing.assert_close(flat(a), flat(b), rtol=1e-9, atol=1e-12)
     for i in order:
         torch.testing.assert_close(a.last_happo_factors[i], b.last_happo_factors[i], rtol=1e-9, atol=1e-12)

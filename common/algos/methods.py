@@ -50,7 +50,7 @@ from common.algos.critic import TeamCritic, ValueNormalizer, compute_gae, next_v
 from common.algos.registry import method_spec
 from common.algos.talo import Through, cosine, flat_grad, talo_gap, talo_project, unflatten_like
 from common.policy.proposal import proposal_entropy, proposal_log_prob
-from common.policy.sail import SailConfig, sail_center_implicit, sail_project
+from common.policy.sail import SailConfig, SailStep, sail_center_implicit, sail_project, sail_step
 from common.policy.tree import TreeConfig
 from common.policy.tree_torch import TeamPolicy
 from common.safety_rows import VIOLATION_TOL, SafetyRows
@@ -84,7 +84,9 @@ class Minibatch:
     active: Tensor     # [B, N] bool: robot-controlled carrier blocks
 
     def index(self, idx: Tensor) -> "Minibatch":
-        return Minibatch(**{k: v[idx] for k, v in self.__dict__.items()})
+        """The rows ``idx`` (a 1-D index tensor) of every field; index_select is
+        the same gather as ``v[idx]`` at a third of its cost for the row blocks."""
+        return Minibatch(**{k: v.index_select(0, idx) for k, v in self.__dict__.items()})
 
 
 @dataclass
@@ -92,7 +94,7 @@ class StartPoint:
     """What the W_gap diagnostics computed at a minibatch's start parameters
     (detached), for the sequential step to reuse instead of recomputing."""
     a_st: Tensor        # [B, D] nominal actions
-    center: Tensor      # [B, D] proposal centers (SAIL solution)
+    step: SailStep | None   # SAIL's implicit step there (None: no implicit SAIL center)
     log_ratio: Tensor   # [B, N]
     L_ind: Tensor       # [N] surrogate values L_i
     g_ind: Tensor       # flat g_ind
@@ -361,17 +363,25 @@ class Method:
         return Through(a_st, [slice(CARRIER_ACT_DIM * i, CARRIER_ACT_DIM * (i + 1)) for i in range(self.n_agents)],
                        [[t.W, t.b, t.K, t.beta] for t in self.trees])
 
+    def _sail_step(self, mb: Minibatch, a_st: Tensor, kappa: float) -> SailStep | None:
+        """SAIL's solve and implicit step at ``a_st`` (None where the center is not
+        the implicit SAIL map), for ``_center`` to build graphs on."""
+        if not self.uses_sail or self.cfg.sail_grad == "unrolled":
+            return None
+        return sail_step(a_st, mb.C, mb.c, mb.row_mask, kappa, mb.fixed, mb.a_prop, self.sail_config)
+
     def _center(self, mb: Minibatch, a_st: Tensor, kappa: float,
-                x_star: Tensor | None = None) -> Tensor:
+                step: SailStep | None = None) -> Tensor:
         """Proposal center: SAIL map Pi_kappa(x, a_ST) (Eq. sail_projection) or identity.
-        Human blocks sit at their measured action (= stored a_prop there)."""
+        Human blocks sit at their measured action (= stored a_prop there). ``step``:
+        ``_sail_step``'s answer at the same values of a_ST, if already computed."""
         if not self.uses_sail:
             return torch.where(mb.fixed, mb.a_prop.to(a_st.dtype), a_st)
         if self.cfg.sail_grad == "unrolled":
             return sail_project(a_st.double(), mb.C, mb.c, mb.row_mask, kappa,
                                 fixed_mask=mb.fixed, fixed_action=mb.a_prop, config=self.sail_config)
         return sail_center_implicit(a_st, mb.C, mb.c, mb.row_mask, kappa, mb.fixed, mb.a_prop,
-                                    self.sail_config, x_star=x_star)
+                                    self.sail_config, step=step)
 
     def _log_ratio(self, mb: Minibatch, center: Tensor, log_std: Tensor) -> Tensor:
         """Per-carrier log-likelihood ratio at the stored a_prop [B, N]; 0 on human blocks."""
@@ -405,12 +415,13 @@ class Method:
     # ------------------------------------------------------------------ actor updates
 
     def _start_point(self, mb: Minibatch, tau: float, kappa: float):
-        """Graph of the surrogates at the current parameters (all carriers attached)."""
+        """Graph of the surrogates at the current parameters (all carriers attached):
+        (a_ST, SAIL step or None, log ratios [B, N], [L_i], L_team)."""
         a_st = self._tree_actions(mb, tau, grad=True)
-        center = self._center(mb, a_st, kappa)
-        log_ratio = self._log_ratio(mb, center, self._log_std())
+        step = self._sail_step(mb, a_st, kappa)
+        log_ratio = self._log_ratio(mb, self._center(mb, a_st, kappa, step=step), self._log_std())
         L_ind, L_team = self._surrogates(mb, log_ratio)
-        return a_st, center, log_ratio, L_ind, L_team
+        return a_st, step, log_ratio, L_ind, L_team
 
     @staticmethod
     def _gap_stats(g_ind: Tensor, g_team: Tensor, w_gap, log_ratio: Tensor, active: Tensor) -> dict:
@@ -422,10 +433,10 @@ class Method:
         parameters, for the sequential methods (the joint step measures them
         itself). Also returns the ``StartPoint``, which the HAPPO step reuses:
         the forward (saves a SAIL solve) and g_ind (its first carrier's gradient)."""
-        a_st, center, log_ratio, L_ind, L_team = self._start_point(mb, tau, kappa)
+        a_st, step, log_ratio, L_ind, L_team = self._start_point(mb, tau, kappa)
         g_ind, g_team, w, _ = talo_gap(L_ind, L_team, self.groups, separable=not self.uses_sail,
                                        with_hvp=False, through=self._through(a_st))
-        start = StartPoint(a_st.detach().clone(), center.detach().clone(), log_ratio.detach(),
+        start = StartPoint(a_st.detach().clone(), step, log_ratio.detach(),
                            torch.stack(L_ind).detach(), g_ind)
         return self._gap_stats(g_ind, g_team, w, log_ratio, mb.active), start
 
@@ -513,11 +524,11 @@ class Method:
             order = torch.randperm(self.n_agents, generator=self.gen).tolist()
         factor = torch.ones_like(mb.adv)
         if start is not None:
-            a_st_cache, center_cache = start.a_st, start.center
+            a_st_cache, step_cache = start.a_st, start.step
         else:
-            with torch.no_grad():
+            with torch.no_grad():      # forward at the current parameters
                 a_st_cache = self._tree_actions(mb, tau, grad=False)
-                center_cache = self._center(mb, a_st_cache, kappa)   # forward at current params
+                step_cache = self._sail_step(mb, a_st_cache, kappa)
         self.last_happo_factors = {}
         losses, kls, clips, ents, norms = [], [], [], [], []
         for i in order:
@@ -538,8 +549,8 @@ class Method:
             else:
                 own = tree(mb.obs[:, i], tau).action
                 a_st = torch.cat([a_st_cache[:, :block.start], own, a_st_cache[:, block.stop:]], dim=-1)
-                # same values as the cached forward: reuse its SAIL solution, build the graph only
-                center = self._center(mb, a_st, kappa, x_star=center_cache)
+                # same values as the cached forward: reuse its SAIL step, build the graph only
+                center = self._center(mb, a_st, kappa, step=step_cache)
                 log_ratio = self._log_ratio(mb, center, log_std)[:, i]
                 surr = (self._clipped(log_ratio.exp(), mb.adv * factor) * active).mean()
             entropy = proposal_entropy(log_std)[i]
@@ -555,8 +566,9 @@ class Method:
             # M <- M * rho_i(theta_i new)  (HARL: ratio of the updated carrier, detached)
             with torch.no_grad():
                 a_st_cache[:, block] = tree(mb.obs[:, i], tau).action
-                center_cache = self._center(mb, a_st_cache, kappa)
-                new = self._log_ratio(mb, center_cache, self._log_std())[:, i]
+                step_cache = self._sail_step(mb, a_st_cache, kappa)
+                new = self._log_ratio(mb, self._center(mb, a_st_cache, kappa, step=step_cache),
+                                      self._log_std())[:, i]
                 factor = factor * torch.where(active, new.exp(), torch.ones_like(new))
         return {"policy_loss": float(np.sum(losses)), "approx_kl": float(np.mean(kls)),
                 "clip_frac": float(np.mean(clips)), "entropy": float(np.mean(ents)),

@@ -240,16 +240,15 @@ def sail_project_np(
 
 
 def sail_implicit_step_np(a_st, C, c, mask, kappa, fixed_mask, fixed_action,
-                          config: SailConfig = _DEFAULT, x_star=None):
+                          config: SailConfig = _DEFAULT):
     """The learner's implicit SAIL step at the actors' solution: ``(x_star, H_inv, offset)``
     (see ``sail_center_implicit``). ``x_star`` is ``sail_project_np``'s answer for these
-    inputs (the same prepared rows and kernel, so the same bits), unless passed in."""
+    inputs (the same prepared rows and kernel, so the same bits)."""
     a, Cn, cn, keep, kappa, n_newton, damping = _prepare_np(
         a_st, C, c, mask, kappa, None, None, fixed_mask, fixed_action, config)
     args = _kernel_args(a, Cn, cn, keep, kappa)
-    if x_star is None:
-        x_star = sail_newton(*args, n_newton, damping == "exact")
-    H_inv, offset = sail_implicit_step(np.require(x_star, np.float64, "CAW"), *args[1:])
+    x_star = sail_newton(*args, n_newton, damping == "exact")
+    H_inv, offset = sail_implicit_step(x_star, *args[1:])
     return x_star, H_inv, offset
 
 
@@ -398,9 +397,31 @@ def sail_project(
     return x
 
 
+@dataclass(frozen=True)
+class SailStep:
+    """SAIL's implicit step at the actors' solution ``x_star`` [B, d], as float64
+    tensors: the center is ``x_star - H_inv (offset - a)`` (``sail_center_implicit``).
+    It depends on a_ST only through x*, so one step serves every graph built at
+    the same a_ST (the sequential methods' next carrier reuses the refresh's)."""
+    x_star: "torch.Tensor"
+    H_inv: "torch.Tensor"     # [B, d, d]
+    offset: "torch.Tensor"    # [B, d]
+
+
+def sail_step(a_st: torch.Tensor, C: torch.Tensor, c: torch.Tensor, mask: torch.Tensor, kappa: float,
+              fixed: torch.Tensor, human: torch.Tensor, config: SailConfig) -> SailStep:
+    """The actors' solve at ``a_st`` and the implicit step there (``sail_implicit_step_np``)."""
+    import torch
+
+    x_np, H_inv, offset = sail_implicit_step_np(
+        a_st.detach().double().cpu().numpy(), C.detach().cpu().numpy(), c.detach().cpu().numpy(),
+        mask.cpu().numpy(), kappa, fixed.cpu().numpy(), human.detach().cpu().numpy(), config)
+    return SailStep(*(torch.as_tensor(v, dtype=torch.float64, device=a_st.device) for v in (x_np, H_inv, offset)))
+
+
 def sail_center_implicit(a_st: torch.Tensor, C: torch.Tensor, c: torch.Tensor, mask: torch.Tensor,
                          kappa: float, fixed: torch.Tensor, human: torch.Tensor, config: SailConfig,
-                         x_star: torch.Tensor | None = None) -> torch.Tensor:
+                         step: SailStep | None = None) -> torch.Tensor:
     """SAIL center (Eq. sail_projection) with implicit-function gradients.
 
     Forward: the actors' own numpy solver (common.policy.sail.sail_project_np, same
@@ -416,18 +437,14 @@ def sail_center_implicit(a_st: torch.Tensor, C: torch.Tensor, c: torch.Tensor, m
     Newton step keeps the active set (see the module docstring). All of the step
     but a_ST is constant (x*, the rows, kappa), so it is affine in a_ST: H^{-1} and the
     offset x* - kappa C_J^T r_J come from a compiled kernel with the solve
-    (``sail_implicit_step_np``), and the graph is one batched matrix-vector product,
+    (``sail_step``), and the graph is one batched matrix-vector product,
     whose backward and double backward (TALO's HVP) are products with the same
     constant matrix. Differentiable in a_ST only (the rows are data).
-    ``x_star`` may pass a forward solution already computed for these values.
+    ``step`` may pass ``sail_step``'s answer already computed at these values.
     """
     import torch
 
-    a64 = a_st.double()
-    x_np, H_inv, offset = sail_implicit_step_np(
-        a64.detach().cpu().numpy(), C.detach().cpu().numpy(), c.detach().cpu().numpy(),
-        mask.cpu().numpy(), kappa, fixed.cpu().numpy(), human.detach().cpu().numpy(), config,
-        x_star=None if x_star is None else x_star.detach().double().cpu().numpy())
-    as_t = lambda v: torch.as_tensor(v, dtype=torch.float64, device=a_st.device)  # noqa: E731
-    a = torch.where(fixed, human.double(), a64)
-    return as_t(x_np) - (as_t(H_inv) @ (as_t(offset) - a)[..., None])[..., 0]
+    if step is None:
+        step = sail_step(a_st, C, c, mask, kappa, fixed, human, config)
+    a = torch.where(fixed, human.double(), a_st.double())
+    return step.x_star - (step.H_inv @ (step.offset - a)[..., None])[..., 0]
