@@ -128,9 +128,10 @@ class Method:
         self.groups = [list(t.parameters()) for t in self.trees]
         self.group_sizes = [sum(p.numel() for p in g) for g in self.groups]
         self.actor_params = [p for g in self.groups for p in g]
-        # one Adam per carrier (HARL style; TALO steps all of them together)
-        self.actor_opts = [torch.optim.Adam(g, lr=cfg.actor_lr, eps=1e-5) for g in self.groups]
-        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr, eps=1e-5)
+        # one Adam per carrier (HARL style; TALO steps all of them together); fused: the same
+        # update as one kernel over all tensors, a third of the per-tensor loop's CPU at these sizes
+        self.actor_opts = [torch.optim.Adam(g, lr=cfg.actor_lr, eps=1e-5, fused=True) for g in self.groups]
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr, eps=1e-5, fused=True)
         # the learner's SAIL forward must equal the actors' (common/policy/rollout.py defaults)
         self.sail_config = SailConfig()
         self.gen = torch.Generator().manual_seed(cfg.seed + 1)
