@@ -109,8 +109,9 @@ def test_step_meter_takes_each_components_cores_over_the_same_window():
             meter.on_status("k", status_msg("runA", "actor", "0", 1 + int(100 * (time.time() - t0))))
             stop.wait(0.01)
 
-    def cpu():   # a component that used 0.75 of a core all along, one that used none
-        return {"actor-0": 0.75 * (time.monotonic() - t0), "router": 2.0}
+    def cpu():   # a component that used 0.75 of a core all along, one that used none, one restarted
+        restarted = 1.0 if (time.monotonic() - t0) < 0.3 else 0.1
+        return {"actor-0": 0.75 * (time.monotonic() - t0), "router": 2.0, "learner": restarted}
 
     th = threading.Thread(target=feed, daemon=True)
     th.start()
@@ -120,7 +121,7 @@ def test_step_meter_takes_each_components_cores_over_the_same_window():
         stop.set()
         th.join()
     assert meter.window_cores["actor-0"] == pytest.approx(0.75, rel=0.02)
-    assert meter.window_cores["router"] == 0.0
+    assert meter.window_cores["router"] == 0.0 and "learner" not in meter.window_cores
 
 
 def test_cpu_budget_is_the_cost_of_an_env_step_and_the_rate_the_cores_allow():

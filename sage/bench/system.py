@@ -184,7 +184,8 @@ class StepMeter:
         apart (each actor's own clock); the other counters' rates of the same
         window are left in ``window_rates``. ``alive()`` raises if the system broke.
         ``cpu()`` (optional) returns CPU seconds so far by component; the cores each
-        used over the same window are left in ``window_cores``."""
+        used over the same window are left in ``window_cores`` (a component whose
+        count went back, i.e. one restarted in the window, is left out)."""
         deadline = time.monotonic() + timeout_s
         while not self.stepping(n_actors):
             alive()
@@ -199,7 +200,7 @@ class StepMeter:
         s1, c1 = self.snapshot(), self.counter_snapshot()
         p1, t1 = (cpu() if cpu else {}), time.monotonic()
         self.window_rates = self.rates(c0, c1)
-        self.window_cores = {k: (v - p0[k]) / (t1 - t0) for k, v in p1.items() if k in p0}
+        self.window_cores = {k: (v - p0[k]) / (t1 - t0) for k, v in p1.items() if k in p0 and v >= p0[k]}
         return sum(self.rates(s0, s1).values())
 
 
