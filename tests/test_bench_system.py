@@ -44,54 +44,53 @@ def test_quantiles_match_numpy():
     assert q["p99"] == pytest.approx(1e3 * np.sort(x)[495])  # linear interpolation lands on index 495 exactly
 
 
-def test_step_meter_sums_actor_rates_on_the_sender_clock():
-    meter = StepMeter("runA")
-    rates = {"0": 400.0, "1": 150.0}
+def measure_while_feeding(meter: StepMeter, publish, n_actors: int = 1, **kw) -> float:
+    """``meter.measure`` (0.5 s window) while a thread calls ``publish(dt)`` every 10 ms,
+    ``dt`` = seconds since the start on the clock status envelopes are stamped with."""
     t0 = time.time()
     stop = threading.Event()
 
     def feed():
         while not stop.is_set():
-            for member, r in rates.items():
-                # steps derived from the same clock the envelope is stamped with
-                meter.on_status("k", status_msg("runA", "actor", member, 1 + int(r * (time.time() - t0))))
-            meter.on_status("k", status_msg("runA", "learner", "0", 10**9))   # not an actor
-            meter.on_status("k", status_msg("runB", "actor", "7", 10**9))     # another run
+            publish(time.time() - t0)
             stop.wait(0.01)
 
     th = threading.Thread(target=feed, daemon=True)
     th.start()
     try:
-        rate = meter.measure(2, warmup_s=0.05, measure_s=0.5, timeout_s=10)
+        return meter.measure(n_actors, warmup_s=0.05, measure_s=0.5, timeout_s=10, **kw)
     finally:
         stop.set()
         th.join()
+
+
+def test_step_meter_sums_actor_rates_on_the_sender_clock():
+    meter = StepMeter("runA")
+    rates = {"0": 400.0, "1": 150.0}
+
+    def publish(dt):
+        for member, r in rates.items():
+            # steps derived from the same clock the envelope is stamped with
+            meter.on_status("k", status_msg("runA", "actor", member, 1 + int(r * dt)))
+        meter.on_status("k", status_msg("runA", "learner", "0", 10**9))   # not an actor
+        meter.on_status("k", status_msg("runB", "actor", "7", 10**9))     # another run
+
+    rate = measure_while_feeding(meter, publish, n_actors=2)
     assert sorted(meter.snapshot()) == ["0", "1"]
     assert rate == pytest.approx(550.0, rel=0.02)
 
 
 def test_step_meter_rates_the_learners_update_share_each_shards_qps_and_the_actors_loop():
     meter = StepMeter("runA")
-    t0 = time.time()
-    stop = threading.Event()
 
-    def feed():
-        while not stop.is_set():
-            dt = time.time() - t0
-            meter.on_status("k", status_msg("runA", "actor", "0", 1 + int(100 * dt),
-                                            {"shield_wait_s_total": 0.1 * dt, "loop_cpu_s_total": 0.85 * dt}))
-            meter.on_status("k", status_msg("runA", "learner", "0", 0, {"update_s_total": 0.25 * dt}))
-            for k, qps in (("0", 300.0), ("1", 50.0)):
-                meter.on_status("k", status_msg("runA", "shield", k, 0, {"rows": qps * dt}))
-            stop.wait(0.01)
+    def publish(dt):
+        meter.on_status("k", status_msg("runA", "actor", "0", 1 + int(100 * dt),
+                                        {"shield_wait_s_total": 0.1 * dt, "loop_cpu_s_total": 0.85 * dt}))
+        meter.on_status("k", status_msg("runA", "learner", "0", 0, {"update_s_total": 0.25 * dt}))
+        for k, qps in (("0", 300.0), ("1", 50.0)):
+            meter.on_status("k", status_msg("runA", "shield", k, 0, {"rows": qps * dt}))
 
-    th = threading.Thread(target=feed, daemon=True)
-    th.start()
-    try:
-        meter.measure(1, warmup_s=0.05, measure_s=0.5, timeout_s=10)
-    finally:
-        stop.set()
-        th.join()
+    measure_while_feeding(meter, publish)
     r = meter.window_rates
     assert r["learner/update_s"] == pytest.approx(0.25, rel=0.05)
     assert r["actor/0/shield_wait_s"] == pytest.approx(0.1, rel=0.05)
@@ -102,24 +101,13 @@ def test_step_meter_rates_the_learners_update_share_each_shards_qps_and_the_acto
 def test_step_meter_takes_each_components_cores_over_the_same_window():
     meter = StepMeter("runA")
     t0 = time.monotonic()
-    stop = threading.Event()
-
-    def feed():
-        while not stop.is_set():
-            meter.on_status("k", status_msg("runA", "actor", "0", 1 + int(100 * (time.time() - t0))))
-            stop.wait(0.01)
 
     def cpu():   # a component that used 0.75 of a core all along, one that used none, one restarted
         restarted = 1.0 if (time.monotonic() - t0) < 0.3 else 0.1
         return {"actor-0": 0.75 * (time.monotonic() - t0), "router": 2.0, "learner": restarted}
 
-    th = threading.Thread(target=feed, daemon=True)
-    th.start()
-    try:
-        meter.measure(1, warmup_s=0.05, measure_s=0.5, timeout_s=10, cpu=cpu)
-    finally:
-        stop.set()
-        th.join()
+    measure_while_feeding(meter, lambda dt: meter.on_status("k", status_msg("runA", "actor", "0", 1 + int(100 * dt))),
+                          cpu=cpu)
     assert meter.window_cores["actor-0"] == pytest.approx(0.75, rel=0.02)
     assert meter.window_cores["router"] == 0.0 and "learner" not in meter.window_cores
 

@@ -403,9 +403,9 @@ class SailStep:
     tensors: the center is ``x_star - H_inv (offset - a)`` (``sail_center_implicit``).
     It depends on a_ST only through x*, so one step serves every graph built at
     the same a_ST (the sequential methods' next carrier reuses the refresh's)."""
-    x_star: "torch.Tensor"
-    H_inv: "torch.Tensor"     # [B, d, d]
-    offset: "torch.Tensor"    # [B, d]
+    x_star: torch.Tensor
+    H_inv: torch.Tensor       # [B, d, d]
+    offset: torch.Tensor      # [B, d]
 
 
 def sail_step(a_st: torch.Tensor, C: torch.Tensor, c: torch.Tensor, mask: torch.Tensor, kappa: float,
