@@ -45,6 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.policy import proposal_kernels as kernels
 
 @dataclass(frozen=True)
 class ProposalConfig:
@@ -54,7 +55,9 @@ class ProposalConfig:
 
 
 _DEFAULT = ProposalConfig()
-_LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
+_LOG_SQRT_2PI = kernels.LOG_SQRT_2PI
+_A_PROP_OUTSIDE = "proposal: a_prop must be finite with |a| < 1 (density is zero outside the open box)"
+_NONFINITE_CENTER = "proposal: center and log_std must be finite"
 
 
 def _n_agents(d: int, act_dim: int) -> int:
@@ -88,14 +91,35 @@ def _center_mu_np(center, config):
     return np.arctanh(np.clip(center, -lim, lim))
 
 
+def _log_std_rows(log_std: np.ndarray) -> np.ndarray:
+    """log_std [d] or [B,d] as the kernels read it: [1,d] or [B,d] float64."""
+    return np.ascontiguousarray(log_std.reshape(1, -1) if log_std.ndim == 1 else log_std)
+
+
 def proposal_log_prob_np(center, log_std, a_prop, config: ProposalConfig = _DEFAULT) -> np.ndarray:
-    """Exact log-density of a_prop [B,d] (|a| < 1) per carrier -> [B,N] (float64)."""
+    """Exact log-density of a_prop [B,d] (|a| < 1) per carrier -> [B,N] (float64).
+    The compiled kernel (common/policy/proposal_kernels.py); ``proposal_log_prob_np_reference``
+    is its numpy twin."""
+    center = np.asarray(center, dtype=np.float64)
+    log_std = np.asarray(log_std, dtype=np.float64)
+    a = np.asarray(a_prop, dtype=np.float64)
+    _check(center, log_std, a)
+    _n_agents(center.shape[1], config.act_dim)
+    logp, error = kernels.proposal_log_prob(np.ascontiguousarray(center), _log_std_rows(log_std),
+                                            np.ascontiguousarray(a), config.center_eps, config.act_dim)
+    if error != kernels.OK:
+        raise ValueError(_A_PROP_OUTSIDE)
+    return logp
+
+
+def proposal_log_prob_np_reference(center, log_std, a_prop, config: ProposalConfig = _DEFAULT) -> np.ndarray:
+    """Numpy ``proposal_log_prob_np``."""
     center = np.asarray(center, dtype=np.float64)
     log_std = np.asarray(log_std, dtype=np.float64)
     a = np.asarray(a_prop, dtype=np.float64)
     _check(center, log_std, a)
     if not (np.all(np.isfinite(a)) and np.all(np.abs(a) < 1.0)):
-        raise ValueError("proposal: a_prop must be finite with |a| < 1 (density is zero outside the open box)")
+        raise ValueError(_A_PROP_OUTSIDE)
     n = _n_agents(center.shape[1], config.act_dim)
     mu = _center_mu_np(center, config)
     u = np.arctanh(a)
@@ -104,21 +128,50 @@ def proposal_log_prob_np(center, log_std, a_prop, config: ProposalConfig = _DEFA
     return per_dim.reshape(len(a), n, config.act_dim).sum(-1)
 
 
-def proposal_sample_np(center, log_std, rng: np.random.Generator, config: ProposalConfig = _DEFAULT):
+def proposal_sample_np(center, log_std, rng: np.random.Generator, config: ProposalConfig = _DEFAULT,
+                       human_carrier=None, human_action=None):
     """Sample a_prop [B,d] around the center and return (a_prop, logp [B,N]).
 
     a_prop is float64 holding float32-representable values inside +-(1-sample_clip);
-    logp is evaluated exactly at those stored values.
+    logp is evaluated exactly at those stored values. ``human_carrier`` [B,N] bool
+    (optional): those carrier blocks take ``human_action`` [B,d] and log-prob 0
+    (the noise is drawn for every entry all the same, so the stream does not
+    depend on who holds a block). The compiled kernel
+    (common/policy/proposal_kernels.py); ``proposal_sample_np_reference`` is its numpy twin.
     """
     center = np.asarray(center, dtype=np.float64)
     log_std = np.asarray(log_std, dtype=np.float64)
     _check(center, log_std)
+    B, d = center.shape
+    n = _n_agents(d, config.act_dim)
+    noise = rng.standard_normal(center.shape)
+    if human_carrier is None:
+        human_carrier, human_action = np.zeros((B, n), dtype=bool), center
+    a, logp, error = kernels.sample_proposal(
+        np.ascontiguousarray(center), _log_std_rows(log_std), noise, human_carrier,
+        np.asarray(human_action, dtype=np.float64), config.center_eps, _sample_bound(config), config.act_dim)
+    if error != kernels.OK:
+        raise ValueError(_NONFINITE_CENTER)
+    return a, logp
+
+
+def proposal_sample_np_reference(center, log_std, rng: np.random.Generator, config: ProposalConfig = _DEFAULT,
+                                 human_carrier=None, human_action=None):
+    """Numpy ``proposal_sample_np`` (the same draws from ``rng``)."""
+    center = np.asarray(center, dtype=np.float64)
+    log_std = np.asarray(log_std, dtype=np.float64)
+    _check(center, log_std)
     if not (np.all(np.isfinite(center)) and np.all(np.isfinite(log_std))):
-        raise ValueError("proposal: center and log_std must be finite")
+        raise ValueError(_NONFINITE_CENTER)
     u = _center_mu_np(center, config) + np.exp(log_std) * rng.standard_normal(center.shape)
     bound = _sample_bound(config)
     a = np.clip(np.tanh(u).astype(np.float32), -bound, bound).astype(np.float64)
-    return a, proposal_log_prob_np(center, log_std, a, config)
+    logp = proposal_log_prob_np_reference(center, log_std, a, config)
+    if human_carrier is not None:
+        fixed = np.repeat(np.asarray(human_carrier, dtype=bool), config.act_dim, axis=1)
+        a = np.where(fixed, human_action, a)
+        logp = np.where(human_carrier, 0.0, logp)
+    return a, logp
 
 
 # ----------------------------------------------------------------------------- torch (learner)
@@ -136,7 +189,7 @@ def proposal_log_prob(center, log_std, a_prop, config: ProposalConfig = _DEFAULT
     center, log_std = center.to(torch.float64), log_std.to(torch.float64)
     a = torch.as_tensor(a_prop, dtype=torch.float64, device=center.device)
     if not bool((torch.isfinite(a) & (a.abs() < 1.0)).all()):
-        raise ValueError("proposal: a_prop must be finite with |a| < 1 (density is zero outside the open box)")
+        raise ValueError(_A_PROP_OUTSIDE)
     n = _n_agents(center.shape[1], config.act_dim)
     lim = 1.0 - config.center_eps
     mu = torch.atanh(center.clamp(-lim, lim))

@@ -22,12 +22,15 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from common.policy import proposal_kernels
 from common.policy.proposal import ProposalConfig, proposal_sample_np
 from common.policy.sail import SailConfig, sail_project_np
-from common.policy.tree import team_forward_np, team_log_std
+from common.policy.tree import ValidatedParams, team_forward_np, team_log_std
 from common.safety_rows import SafetyRows
 
 MODES = ("train", "deploy")
+_PARTIAL_BLOCK = "rollout: fixed_mask must fix whole carrier blocks (all of a carrier's columns or none)"
+_NONFINITE_HUMAN = "rollout: human_action is NaN/Inf in a fixed block"
 
 
 def carrier_fixed_mask(fixed_mask: np.ndarray, n_agents: int, act_dim: int) -> np.ndarray:
@@ -35,8 +38,29 @@ def carrier_fixed_mask(fixed_mask: np.ndarray, n_agents: int, act_dim: int) -> n
     blocks = fixed_mask.reshape(len(fixed_mask), n_agents, act_dim)
     whole = blocks.all(-1)
     if np.any(blocks.any(-1) != whole):
-        raise ValueError("rollout: fixed_mask must fix whole carrier blocks (all of a carrier's columns or none)")
+        raise ValueError(_PARTIAL_BLOCK)
     return whole
+
+
+def human_blocks(a_tree: np.ndarray, fixed: np.ndarray, human: np.ndarray, n_agents: int):
+    """``(a_st, human_carrier)``: the human's measured action replaces the trees' in
+    fixed blocks ([B,d], fixed and human broadcast to it), and which carrier blocks
+    are the human's [B,N]. Raises on a partly fixed block or a NaN/Inf human entry.
+    The compiled kernel; ``human_blocks_reference`` is its numpy twin."""
+    a_st, human_carrier, error = proposal_kernels.human_blocks(a_tree, fixed, human, a_tree.shape[1] // n_agents)
+    if error == proposal_kernels.PARTIAL_BLOCK:
+        raise ValueError(_PARTIAL_BLOCK)
+    if error == proposal_kernels.NONFINITE_HUMAN:
+        raise ValueError(_NONFINITE_HUMAN)
+    return a_st, human_carrier
+
+
+def human_blocks_reference(a_tree: np.ndarray, fixed: np.ndarray, human: np.ndarray, n_agents: int):
+    """Numpy ``human_blocks``."""
+    if np.any(fixed) and not np.all(np.isfinite(human[fixed])):
+        raise ValueError(_NONFINITE_HUMAN)
+    human_carrier = carrier_fixed_mask(fixed, n_agents, a_tree.shape[1] // n_agents)
+    return np.where(fixed, human, a_tree), human_carrier
 
 
 def propose(
@@ -67,10 +91,7 @@ def propose(
     n_agents = leaf.shape[1]
     fixed = np.broadcast_to(np.asarray(rows.fixed_mask, dtype=bool), (B, d))
     human = np.broadcast_to(np.asarray(human_action, dtype=np.float64), (B, d))
-    if np.any(fixed) and not np.all(np.isfinite(human[fixed])):
-        raise ValueError("rollout: human_action is NaN/Inf in a fixed block")
-    human_carrier = carrier_fixed_mask(fixed, n_agents, d // n_agents)
-    a_st = np.where(fixed, human, a_tree)
+    a_st, human_carrier = human_blocks(a_tree, fixed, human, n_agents)
 
     if mode == "deploy":
         return dict(a_st=a_st, a_bar=a_st.copy(), a_prop=a_st.copy(), logp=np.zeros((B, n_agents)),
@@ -81,8 +102,8 @@ def propose(
                                 fixed_mask=fixed, fixed_action=human, config=sail_config)
     else:
         a_bar = a_st.copy()
-    a_prop, logp = proposal_sample_np(a_bar, team_log_std(params), rng, proposal_config)
-    a_prop = np.where(fixed, human, a_prop)
-    logp = np.where(human_carrier, 0.0, logp)
+    log_std = params.log_std if isinstance(params, ValidatedParams) else team_log_std(params)
+    a_prop, logp = proposal_sample_np(a_bar, log_std, rng, proposal_config,
+                                      human_carrier=human_carrier, human_action=human)
     return dict(a_st=a_st, a_bar=a_bar, a_prop=a_prop, logp=logp, leaf=leaf, nodes=nodes, sides=sides,
                 a_tree=a_tree)

@@ -118,6 +118,7 @@ class ValidatedParams(dict):
         super().__init__(params)
         self.spec = validate_params(params)
         self.stacked = stack_team_arrays(self, self.spec)   # what the forward kernel reads, built once
+        self.log_std = team_log_std(self)                   # the proposal's, likewise
 
 
 def validate_params(params: Mapping[str, np.ndarray]) -> ParamsSpec:
