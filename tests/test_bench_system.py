@@ -16,6 +16,8 @@ import pytest
 
 from common import keys, wire
 from sage.bench.system import (
+    actor_step_cost,
+    cpu_ratio,
     QUICK,
     StepMeter,
     SystemBench,
@@ -264,3 +266,21 @@ def test_command_line_and_table():
     assert "sage" in table and "(0.30,  0.40)" in table and "2 shard(s), 4 actors" in table
     assert "actor-0 4167, learner-0 5833; total 10000 -> the host's cores allow 200 (0.50 x bound)" in table
     assert "in-process core-us" not in table
+    assert "core-us per env step (actor" not in table   # a result without the CPU figures
+    result["actor_core_us_per_env_step"] = {"shield_service": {"actor": 400.0, "host": 520.0},
+                                            "local_qp": {"actor": 380.0, "host": 390.0}}
+    result["cpu_ratio_vs_local_qp"] = 0.75
+    assert ("shield service 400 / 520, local QP 380 / 390; CPU ratio 0.75") in summary_table(result)
+
+
+def test_actor_step_cost_counts_the_processes_a_step_needs():
+    cores = {"actor-0": 0.9, "router": 0.05, "shield-0": 0.2, "echo": 0.01}
+    # 2,000 env steps/s: the actor 450 core-us per step; with router and shield 575
+    assert actor_step_cost(cores, 2000.0, True) == pytest.approx({"actor": 450.0, "host": 575.0})
+    # beside a local QP an idle shield is not part of the step
+    assert actor_step_cost(cores, 2000.0, False) == pytest.approx({"actor": 450.0, "host": 475.0})
+    assert actor_step_cost(cores, 0.0, True) == {} and actor_step_cost({"router": 0.1}, 10.0, True) == {}
+    local = [{"actor": 300.0, "host": 310.0}, {"actor": 350.0, "host": 330.0}, {}]
+    service = [{"actor": 380.0, "host": 400.0}, {"actor": 390.0, "host": 440.0}, {"actor": 390.0, "host": 420.0}]
+    assert cpu_ratio(local, service) == pytest.approx(320.0 / 420.0)   # medians of the rounds that have it
+    assert cpu_ratio([{}], service) is None

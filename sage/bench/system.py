@@ -36,7 +36,12 @@ to its in-process twin.
   ``actor_rounds`` times in turn (A B C D A B C D ...) and its median is
   reported, so a slow spell of the machine does not land on one variant.
   ``actor_loop_share`` splits each variant's wall time into blocked on shield
-  answers and the rollout thread's CPU. ``shield_rtt_ms`` gives full and pruned
+  answers and the rollout thread's CPU. ``actor_core_us_per_env_step`` is what
+  an env step cost each variant in CPU (the actor process; ``host``: with the
+  router and, where asked, the shield process), and ``cpu_ratio_vs_local_qp``
+  the local QP's host cost over the shield service's: the ratio the same cores
+  would give if nothing waited, which time-sharing on a loaded machine does not
+  move (medians of the rounds). ``shield_rtt_ms`` gives full and pruned
   requests' round trips and sizes in bytes.
 
 Child entry points of the bench (also run under the supervisor):
@@ -239,6 +244,32 @@ def cpu_budget(cores: dict[str, float], env_steps_per_s: float, host_cpus: int, 
 
 
 # ----------------------------------------------------------------- the actor with a local QP
+def actor_step_cost(cores: dict[str, float], env_steps_per_s: float, shielded_by_service: bool) -> dict[str, float]:
+    """Core-microseconds per env step of one actor-phase window: the actor process's
+    own (``actor``) and every process the step needs (``host``): the actor's and the
+    router's (chunks and heartbeats), plus the shield's where the actor asks it (an
+    idle shield beside a local-QP actor is not counted); the bench's parameter echo
+    is left out. Empty when the window has no steps or no CPU reading of the actor."""
+    if not env_steps_per_s > 0 or "actor-0" not in cores:
+        return {}
+    host = sum(v for k, v in cores.items()
+               if k in ("actor-0", "router") or (shielded_by_service and k.startswith("shield")))
+    return {"actor": cores["actor-0"] / env_steps_per_s * 1e6, "host": host / env_steps_per_s * 1e6}
+
+
+def median_cost(rounds: list[dict]) -> dict[str, float]:
+    """Per figure (``actor``, ``host``), the median over the rounds that have it."""
+    keys = sorted({k for r in rounds for k in r})
+    return {k: float(np.median([r[k] for r in rounds if k in r])) for k in keys}
+
+
+def cpu_ratio(local: list[dict], service: list[dict]) -> float | None:
+    """Host cost of an env step with the local QP over that with the shield service
+    (medians): the steps/s ratio the same cores would give if nothing waited."""
+    a, b = median_cost(local).get("host"), median_cost(service).get("host")
+    return a / b if a and b else None
+
+
 class LocalQPActor(ActorService):
     """The actor service with the exact joint CBF-QP (Eq. qpshield) solved
     in-process instead of by the shield service: the reference of
@@ -533,6 +564,7 @@ class SystemBench:
                      "shield_service_sync": service_specs(sync_path, roles=("actor",), actor_ids=[0])[0].argv,
                      "shield_service_full_rows": service_specs(full_path, roles=("actor",), actor_ids=[0])[0].argv}
             runs: dict[str, list] = {kind: [] for kind in actor}
+            costs: dict[str, list] = {kind: [] for kind in actor}
             try:
                 for r in range(self.cfg.actor_rounds):
                     for kind, argv in actor.items():
@@ -541,9 +573,10 @@ class SystemBench:
                         sub = self.supervise([ServiceSpec("actor-0", argv)], run / f"{kind}-{r}")
                         meter.reset()
                         rate = meter.measure(1, self.cfg.warmup_s, self.cfg.measure_s,
-                                             self.cfg.start_timeout_s, self.check)
+                                             self.cfg.start_timeout_s, self.check, cpu=self.cpu_probe)
                         runs[kind].append((rate, {name: meter.window_rates.get(f"actor/0/{name}")
                                                   for name in ("shield_wait_s", "loop_cpu_s")}))
+                        costs[kind].append(actor_step_cost(meter.window_cores, rate, kind != "local_qp"))
                         self.stop(sub)
             finally:
                 feeder.stop()
@@ -588,6 +621,11 @@ class SystemBench:
                 "actor_loop_share": {kind: {"shield_wait": v["shield_wait_s"], "cpu": v["loop_cpu_s"]}
                                      for kind, v in loop.items()},
                 "ratio_vs_local_qp": rates["shield_service"] / rates["local_qp"],
+                # the same comparison in CPU: what an env step costs the host's cores (actor,
+                # shield and router processes) with the shield service vs with the local QP;
+                # medians of the rounds (time-sharing on a loaded machine does not enter it)
+                "actor_core_us_per_env_step": {kind: median_cost(v) for kind, v in costs.items()},
+                "cpu_ratio_vs_local_qp": cpu_ratio(costs["local_qp"], costs["shield_service"]),
                 "pipelining_gain": rates["shield_service"] / rates["shield_service_sync"],
                 "row_pruning_gain": rates["shield_service"] / rates["shield_service_full_rows"]}
 
@@ -838,6 +876,12 @@ def summary_table(r: dict) -> str:
     lines.append(f"one actor steps/s: shield service {a['shield_service']:.1f} (synchronous "
                  f"{a['shield_service_sync']:.1f}, full rows {a['shield_service_full_rows']:.1f}), "
                  f"local QP {a['local_qp']:.1f}, ratio {r['ratio_vs_local_qp']:.2f} (target >= {r['ratio_target']})")
+    cost = r.get("actor_core_us_per_env_step") or {}
+    if cost.get("shield_service", {}).get("host") and cost.get("local_qp", {}).get("host"):
+        lines.append(f"one actor, core-us per env step (actor process / with router and shield): shield service "
+                     f"{cost['shield_service']['actor']:.0f} / {cost['shield_service']['host']:.0f}, local QP "
+                     f"{cost['local_qp']['actor']:.0f} / {cost['local_qp']['host']:.0f}; "
+                     f"CPU ratio {r['cpu_ratio_vs_local_qp']:.2f}")
     return "\n".join(lines)
 
 
