@@ -99,10 +99,15 @@ class ActorConfig:
     # that alternate, so one group's query is at the shield while the other group
     # steps physics. Same chunks (all K envs, one version per step), same
     # fail-closed rules; only the order of waiting changes. Needs K >= 2 and a
-    # shielded method (without a shield there is no round trip to hide). On by
-    # default: an actor waits 0.01 of its time for answers instead of 0.2, at
-    # the price of a second, smaller propose/verify per step (docs/scaling.md).
-    pipeline: bool = True
+    # shielded method (without a shield there is no round trip to hide). It halves
+    # the batch of every per-step call and doubles the queries, so it costs CPU:
+    # on this 2-core host 35 more actor and 40 more shield and router core-us per
+    # env step, and where the actor, shield and learner share the cores that
+    # costs more than the waiting it hides (2026-12-03: the main job 47-48 s
+    # pipelined vs 41 s synchronous; supervised sage 3.2-3.3k vs 3.4-3.6k env
+    # steps/s; docs/scaling.md). So off by default; turn it on where the shield's
+    # round trip is long against a step (another host) and the actor has its cores.
+    pipeline: bool = False
     # Live decision stream (`sage watch RUN`): every this many steps the actor
     # publishes the step's leaves, predicate paths and QP correction norms on
     # sage/<run>/trace/<actor>. 0 = off; 10 costs one small message per 10 steps.

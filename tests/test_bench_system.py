@@ -257,12 +257,12 @@ def test_command_line_and_table():
                                       "pruned_p99": 0.9, "bytes": 91000, "pruned_bytes": 9100}},
               "param_broadcast_ms": {"p50": 2.5, "p99": 4.0, "inprocess_p50": 0.9, "inprocess_p99": 1.1,
                                      "bytes": 27547},
-              "actor_steps_per_s": {"shield_service": 175.0, "local_qp": 212.0, "shield_service_sync": 170.0,
+              "actor_steps_per_s": {"shield_service": 175.0, "local_qp": 212.0, "shield_service_pipelined": 170.0,
                                     "shield_service_full_rows": 150.0}, "ratio_vs_local_qp": 0.83,
               "ratio_target": 0.7}
     table = summary_table(result)
     assert "ratio 0.83" in table and "B=8" in table and "27547 B" in table and "91000 / 9100" in table
-    assert "full rows 150.0" in table and "synchronous 170.0" in table
+    assert "full rows 150.0" in table and "pipelined 170.0" in table
     assert "sage" in table and "(0.30,  0.40)" in table and "2 shard(s), 4 actors" in table
     assert "actor-0 4167, learner-0 5833; total 10000 -> the host's cores allow 200 (0.50 x bound)" in table
     assert "in-process core-us" not in table

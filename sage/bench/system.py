@@ -29,9 +29,9 @@ to its in-process twin.
   in the loop divided by the same actor with a local in-process QP call
   (``LocalQPActor``, synchronous: nothing to overlap a local call with) -- no
   learner, parameters from the bench; both with the default settings
-  (pipelined, pruned rows: the local QP solves the same pruned rows).
-  ``pipelining_gain``: the default (pipelined, ``actor.pipeline``) over the
-  synchronous actor, ``row_pruning_gain``: pruned rows (``actor.prune_rows``)
+  (synchronous, pruned rows: the local QP solves the same pruned rows).
+  ``pipelining_gain``: the pipelined actor (``actor.pipeline``) over the
+  default synchronous one, ``row_pruning_gain``: pruned rows (``actor.prune_rows``)
   over full rows, all with the shield service. Each variant is measured
   ``actor_rounds`` times in turn (A B C D A B C D ...) and its median is
   reported, so a slow spell of the machine does not land on one variant.
@@ -556,12 +556,12 @@ class SystemBench:
             meter = StepMeter(cfg.run_id)
             bus.subscribe(keys.status_all(cfg.run_id), meter.on_status)
             feeder = _Repeater(learner.publish_params, 0.5)  # actors wait for parameters
-            sync_path = replace(cfg, actor=replace(cfg.actor, pipeline=False)).save(run / "config-sync.json")
+            piped_path = replace(cfg, actor=replace(cfg.actor, pipeline=True)).save(run / "config-pipelined.json")
             full_path = replace(cfg, actor=replace(cfg.actor, prune_rows=False)).save(run / "config-full-rows.json")
             actor = {"local_qp": [sys.executable, "-m", "sage.bench.system", "local-actor",
                                   "--config", str(path), "--actor-id", "0"],
                      "shield_service": service_specs(path, roles=("actor",), actor_ids=[0])[0].argv,
-                     "shield_service_sync": service_specs(sync_path, roles=("actor",), actor_ids=[0])[0].argv,
+                     "shield_service_pipelined": service_specs(piped_path, roles=("actor",), actor_ids=[0])[0].argv,
                      "shield_service_full_rows": service_specs(full_path, roles=("actor",), actor_ids=[0])[0].argv}
             runs: dict[str, list] = {kind: [] for kind in actor}
             costs: dict[str, list] = {kind: [] for kind in actor}
@@ -626,7 +626,7 @@ class SystemBench:
                 # medians of the rounds (time-sharing on a loaded machine does not enter it)
                 "actor_core_us_per_env_step": {kind: median_cost(v) for kind, v in costs.items()},
                 "cpu_ratio_vs_local_qp": cpu_ratio(costs["local_qp"], costs["shield_service"]),
-                "pipelining_gain": rates["shield_service"] / rates["shield_service_sync"],
+                "pipelining_gain": rates["shield_service_pipelined"] / rates["shield_service"],
                 "row_pruning_gain": rates["shield_service"] / rates["shield_service_full_rows"]}
 
     # ------------------------------------------------------------- phase 2: the whole system
@@ -873,8 +873,8 @@ def summary_table(r: dict) -> str:
     lines.append(f"param broadcast   p50 {pb['p50']:.3f} ms  p99 {pb['p99']:.3f} ms  "
                  f"(in-process {pb['inprocess_p50']:.3f} / {pb['inprocess_p99']:.3f}; {pb['bytes']} B)")
     a = r["actor_steps_per_s"]
-    lines.append(f"one actor steps/s: shield service {a['shield_service']:.1f} (synchronous "
-                 f"{a['shield_service_sync']:.1f}, full rows {a['shield_service_full_rows']:.1f}), "
+    lines.append(f"one actor steps/s: shield service {a['shield_service']:.1f} (pipelined "
+                 f"{a['shield_service_pipelined']:.1f}, full rows {a['shield_service_full_rows']:.1f}), "
                  f"local QP {a['local_qp']:.1f}, ratio {r['ratio_vs_local_qp']:.2f} (target >= {r['ratio_target']})")
     cost = r.get("actor_core_us_per_env_step") or {}
     if cost.get("shield_service", {}).get("host") and cost.get("local_qp", {}).get("host"):
