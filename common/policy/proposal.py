@@ -47,6 +47,7 @@ import numpy as np
 
 from common.policy import proposal_kernels as kernels
 
+
 @dataclass(frozen=True)
 class ProposalConfig:
     center_eps: float = 1e-3    # center clipped to +-(1-center_eps) before atanh

@@ -243,7 +243,6 @@ def cpu_budget(cores: dict[str, float], env_steps_per_s: float, host_cpus: int, 
             "cpu_bound_ratio_to_physics_bound": bound / physics_bound}
 
 
-# ----------------------------------------------------------------- the actor with a local QP
 def actor_step_cost(cores: dict[str, float], env_steps_per_s: float, shielded_by_service: bool) -> dict[str, float]:
     """Core-microseconds per env step of one actor-phase window: the actor process's
     own (``actor``) and every process the step needs (``host``): the actor's and the
@@ -259,8 +258,8 @@ def actor_step_cost(cores: dict[str, float], env_steps_per_s: float, shielded_by
 
 def median_cost(rounds: list[dict]) -> dict[str, float]:
     """Per figure (``actor``, ``host``), the median over the rounds that have it."""
-    keys = sorted({k for r in rounds for k in r})
-    return {k: float(np.median([r[k] for r in rounds if k in r])) for k in keys}
+    names = sorted({k for r in rounds for k in r})
+    return {k: float(np.median([r[k] for r in rounds if k in r])) for k in names}
 
 
 def cpu_ratio(local: list[dict], service: list[dict]) -> float | None:
@@ -270,6 +269,7 @@ def cpu_ratio(local: list[dict], service: list[dict]) -> float | None:
     return a / b if a and b else None
 
 
+# ----------------------------------------------------------------- the actor with a local QP
 class LocalQPActor(ActorService):
     """The actor service with the exact joint CBF-QP (Eq. qpshield) solved
     in-process instead of by the shield service: the reference of
