@@ -101,12 +101,13 @@ class ActorConfig:
     # fail-closed rules; only the order of waiting changes. Needs K >= 2 and a
     # shielded method (without a shield there is no round trip to hide). It halves
     # the batch of every per-step call and doubles the queries, so it costs CPU:
-    # on this 2-core host 35 more actor and 40 more shield and router core-us per
-    # env step, and where the actor, shield and learner share the cores that
-    # costs more than the waiting it hides (2026-12-03: the main job 47-48 s
-    # pipelined vs 41 s synchronous; supervised sage 3.2-3.3k vs 3.4-3.6k env
-    # steps/s; docs/scaling.md). So off by default; turn it on where the shield's
-    # round trip is long against a step (another host) and the actor has its cores.
+    # on this 2-core host 21-70 more actor and 19-45 more shield and router
+    # core-us per env step (two bench runs), and where the actor, shield and
+    # learner share the cores that costs more than the waiting it hides
+    # (2026-12-03: the main job 47-48 s pipelined vs 41 s synchronous; supervised
+    # sage 3.2-3.3k vs 3.4-3.6k env steps/s; docs/scaling.md). So off by default;
+    # turn it on where the shield's round trip is long against a step (another
+    # host) and the actor has its cores.
     pipeline: bool = False
     # Live decision stream (`sage watch RUN`): every this many steps the actor
     # publishes the step's leaves, predicate paths and QP correction norms on
