@@ -25,7 +25,7 @@ import numpy as np
 from common.policy import proposal_kernels
 from common.policy.proposal import ProposalConfig, proposal_sample_np
 from common.policy.sail import SailConfig, sail_project_np
-from common.policy.tree import ValidatedParams, team_forward_np, team_log_std
+from common.policy.tree import team_forward_np, team_log_std
 from common.safety_rows import SafetyRows
 
 MODES = ("train", "deploy")
@@ -102,8 +102,7 @@ def propose(
                                 fixed_mask=fixed, fixed_action=human, config=sail_config)
     else:
         a_bar = a_st.copy()
-    log_std = params.log_std if isinstance(params, ValidatedParams) else team_log_std(params)
-    a_prop, logp = proposal_sample_np(a_bar, log_std, rng, proposal_config,
+    a_prop, logp = proposal_sample_np(a_bar, team_log_std(params), rng, proposal_config,
                                       human_carrier=human_carrier, human_action=human)
     return dict(a_st=a_st, a_bar=a_bar, a_prop=a_prop, logp=logp, leaf=leaf, nodes=nodes, sides=sides,
                 a_tree=a_tree)

@@ -118,7 +118,7 @@ class ValidatedParams(dict):
         super().__init__(params)
         self.spec = validate_params(params)
         self.stacked = stack_team_arrays(self, self.spec)   # what the forward kernel reads, built once
-        self.log_std = team_log_std(self)                   # the proposal's, likewise
+        self.log_std = _stack_log_std(self, self.spec)      # the proposal's, likewise
 
 
 def validate_params(params: Mapping[str, np.ndarray]) -> ParamsSpec:
@@ -177,9 +177,15 @@ def carrier_params(params: Mapping[str, np.ndarray], i: int) -> dict[str, np.nda
 
 
 def team_log_std(params: Mapping[str, np.ndarray]) -> np.ndarray:
-    """Stacked proposal log-std [N*A] (float64) from an exported dict."""
-    n = validate_params(params).n_agents
-    return np.concatenate([np.asarray(params[f"carrier_{i}/log_std"], np.float64) for i in range(n)])
+    """Stacked proposal log-std [N*A] (float64) from an exported dict (``ValidatedParams``
+    hold it stacked once; treat the result as read-only)."""
+    if isinstance(params, ValidatedParams):
+        return params.log_std
+    return _stack_log_std(params, validate_params(params))
+
+
+def _stack_log_std(params: Mapping[str, np.ndarray], spec: ParamsSpec) -> np.ndarray:
+    return np.concatenate([np.asarray(params[f"carrier_{i}/log_std"], np.float64) for i in range(spec.n_agents)])
 
 
 # ----------------------------------------------------------------------------- numpy twins (actors)
