@@ -45,6 +45,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from common.algos.adam import Adam
 from common.algos.config import AlgoConfig, kappa_schedule, tau_schedule
 from common.algos.critic import TeamCritic, ValueNormalizer, compute_gae, next_values
 from common.algos.registry import method_spec
@@ -128,10 +129,9 @@ class Method:
         self.groups = [list(t.parameters()) for t in self.trees]
         self.group_sizes = [sum(p.numel() for p in g) for g in self.groups]
         self.actor_params = [p for g in self.groups for p in g]
-        # one Adam per carrier (HARL style; TALO steps all of them together); fused: the same
-        # update as one kernel over all tensors, a third of the per-tensor loop's CPU at these sizes
-        self.actor_opts = [torch.optim.Adam(g, lr=cfg.actor_lr, eps=1e-5, fused=True) for g in self.groups]
-        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr, eps=1e-5, fused=True)
+        # one Adam per carrier (HARL style; TALO steps all of them together)
+        self.actor_opts = [Adam(g, lr=cfg.actor_lr, eps=1e-5) for g in self.groups]
+        self.critic_opt = Adam(self.critic.parameters(), lr=cfg.critic_lr, eps=1e-5)
         # the learner's SAIL forward must equal the actors' (common/policy/rollout.py defaults)
         self.sail_config = SailConfig()
         self.gen = torch.Generator().manual_seed(cfg.seed + 1)
@@ -539,7 +539,7 @@ class Method:
             log_std = torch.cat([t.log_std if j == i else t.log_std.detach()
                                  for j, t in enumerate(self.trees)])
             active = mb.active[:, i]
-            self.actor_opts[i].zero_grad(set_to_none=True)
+            self.actor_opts[i].zero_grad()
             if start is not None and i == order[0]:
                 # M = 1: this carrier's surrogate is L_i at the start point, whose gradient
                 # (block i of g_ind) the diagnostics took already; only the entropy is added
@@ -582,7 +582,7 @@ class Method:
     def _critic_step(self, mb: Minibatch) -> dict[str, float]:
         v = self.critic(mb.obs, mb.state if self.critic.state_dim else None)
         loss = self.cfg.vf_coef * (v - mb.ret).pow(2).mean()
-        self.critic_opt.zero_grad(set_to_none=True)
+        self.critic_opt.zero_grad()
         loss.backward()
         nn.utils.clip_grad_norm_(self.critic.parameters(), self.cfg.max_grad_norm)
         self.critic_opt.step()
