@@ -17,6 +17,7 @@ import pytest
 from common import keys, wire
 from sage.bench.system import (
     actor_step_cost,
+    bracketed_ratio,
     cpu_ratio,
     QUICK,
     StepMeter,
@@ -112,6 +113,16 @@ def test_step_meter_takes_each_components_cores_over_the_same_window():
                           cpu=cpu)
     assert meter.window_cores["actor-0"] == pytest.approx(0.75, rel=0.02)
     assert meter.window_cores["router"] == 0.0 and "learner" not in meter.window_cores
+
+
+def test_bracketed_ratio_divides_by_the_bounds_measured_around_the_figure():
+    r = bracketed_ratio(3000.0, 6000.0, 4000.0)
+    assert r["ratio"] == pytest.approx(0.6)                 # 3000 / mean(6000, 4000)
+    assert r["range"] == pytest.approx([0.5, 0.75])         # to the higher bound, to the lower
+    same = bracketed_ratio(2500.0, 5000.0, 5000.0)
+    assert same["ratio"] == pytest.approx(0.5) and same["range"] == pytest.approx([0.5, 0.5])
+    with pytest.raises(ValueError):
+        bracketed_ratio(1.0, 0.0, 5000.0)
 
 
 def test_cpu_budget_is_the_cost_of_an_env_step_and_the_rate_the_cores_allow():
@@ -261,6 +272,9 @@ def test_command_line_and_table():
                                     "shield_service_full_rows": 150.0}, "ratio_vs_local_qp": 0.83,
               "ratio_target": 0.7}
     table = summary_table(result)
+    assert "physics bound" not in table.split("\n", 1)[1]   # a result without the bracketing bounds
+    one.update(physics_bound_before=410.0, physics_bound_after=390.0)
+    assert "sage: physics bound 410 before, 390 after its phase" in summary_table(result)
     assert "ratio 0.83" in table and "B=8" in table and "27547 B" in table and "91000 / 9100" in table
     assert "full rows 150.0" in table and "pipelined 170.0" in table
     assert "sage" in table and "(0.30,  0.40)" in table and "2 shard(s), 4 actors" in table

@@ -7,8 +7,13 @@ to its in-process twin.
   (in-process mode), for each of ``methods``; beside each, the learner's
   share of wall time inside updates (the rest it waits for data) and the
   ratio to ``physics_bound``: raw MuJoCo stepping the same model with the
-  same controls on one core (``sage bench env``'s bound, measured in this
-  run). Steady state: counted from the services' ``status`` heartbeats
+  same controls on one core (``sage bench env``'s bound), measured right
+  before and right after that method's phase, with no service running, and
+  averaged (``physics_bound_before`` / ``_after``; ``*_ratio_range``: the
+  ratio to the higher and to the lower of the two). This host's speed moves
+  by a third between consecutive measurements of the bound, so a bound taken
+  minutes away from the figure it divides is not a ratio of the same run.
+  Steady state: counted from the services' ``status`` heartbeats
   (cumulative counters with the sender's clock) over ``measure_s`` after
   every actor stepped for ``warmup_s``.
 * ``router_msgs_per_s``: messages one client publishes as fast as it can,
@@ -241,6 +246,14 @@ def cpu_budget(cores: dict[str, float], env_steps_per_s: float, host_cpus: int, 
     return {"cores_used": dict(sorted(cores.items())), "core_us_per_env_step": per_step,
             "core_us_per_env_step_total": total, "cpu_bound_env_steps_per_s": bound,
             "cpu_bound_ratio_to_physics_bound": bound / physics_bound}
+
+
+def bracketed_ratio(rate: float, before: float, after: float) -> dict:
+    """``rate`` against the physics bound measured just before and just after
+    it: the ratio to their mean, and the range from the higher to the lower."""
+    if not (before > 0 and after > 0):
+        raise ValueError(f"physics bounds must be > 0 (got {before}, {after})")
+    return {"ratio": rate / ((before + after) / 2), "range": [rate / max(before, after), rate / min(before, after)]}
 
 
 def actor_step_cost(cores: dict[str, float], env_steps_per_s: float, shielded_by_service: bool) -> dict[str, float]:
@@ -634,6 +647,7 @@ class SystemBench:
         """Router, shield, learner and actors of ``method``; actors are added
         between the measurements (1, then 2, ...), processes first, then threads."""
         counts = sorted(set(self.cfg.actor_counts))
+        bound_before = self.measure_physics_bound()
         port = free_tcp_port()
         connect = [f"tcp/127.0.0.1:{port}"]
         cfg, path = self.train_config(counts[-1], connect, "sys", method=method, learner_defaults=True)
@@ -658,10 +672,17 @@ class SystemBench:
             bus.close()
             self.stop_all()
         inproc, inproc_busy, inproc_cores, failures = self._inprocess_system(counts, method)
-        bound, cpus = self.physics_bound, host_cpus()
+        bound_after = self.measure_physics_bound()
+        bound, cpus = (bound_before + bound_after) / 2, host_cpus()
+        multi_ratio = {n: bracketed_ratio(multi[n], bound_before, bound_after) for n in counts}
+        inproc_ratio = {n: bracketed_ratio(inproc[n], bound_before, bound_after) for n in counts}
         return {str(n): {"multiprocess": multi[n], "inprocess": inproc[n],
-                         "multiprocess_ratio_to_physics_bound": multi[n] / bound,
-                         "inprocess_ratio_to_physics_bound": inproc[n] / bound,
+                         "physics_bound": bound, "physics_bound_before": bound_before,
+                         "physics_bound_after": bound_after,
+                         "multiprocess_ratio_to_physics_bound": multi_ratio[n]["ratio"],
+                         "multiprocess_ratio_range": multi_ratio[n]["range"],
+                         "inprocess_ratio_to_physics_bound": inproc_ratio[n]["ratio"],
+                         "inprocess_ratio_range": inproc_ratio[n]["range"],
                          # seconds inside updates per second of wall time; 1 - this = waiting for data
                          "learner_update_share": learner_busy[n], "inprocess_learner_update_share": inproc_busy[n],
                          "cpu": cpu_budget(cores[n], multi[n], cpus, bound),
@@ -743,15 +764,19 @@ class SystemBench:
         return out
 
     # ------------------------------------------------------------- all
+    def measure_physics_bound(self) -> float:
+        """The one-core raw physics bound of the actors' batch (``sage bench env``'s
+        ``raw_physics_env_steps_per_s``), measured now."""
+        raw = bench_env(self.cfg.scenario, num_envs=self.cfg.envs_per_actor, steps=50, seed=self.cfg.seed)
+        return float(raw["raw_physics_env_steps_per_s"])
+
     def run(self) -> dict:
         t0 = time.monotonic()
         out = {"bench": "system", "config": asdict(self.cfg),
                "host": {"cpus": host_cpus()}}
         try:
-            # the one-core raw physics bound of the actors' batch, measured here
-            raw = bench_env(self.cfg.scenario, num_envs=self.cfg.envs_per_actor, steps=50, seed=self.cfg.seed)
-            self.physics_bound = float(raw["raw_physics_env_steps_per_s"])
-            out["physics_bound_env_steps_per_s"] = self.physics_bound
+            # the bound at the start (each system phase measures its own around it)
+            out["physics_bound_env_steps_per_s"] = self.measure_physics_bound()
             out.update(self.services_phase())
             out["ratio_target"] = RATIO_TARGET
             out["meets_target"] = bool(out["ratio_vs_local_qp"] >= RATIO_TARGET)
@@ -842,9 +867,13 @@ def _share(x) -> str:
 
 
 def summary_table(r: dict) -> str:
-    lines = [f"raw physics bound (1 core): {r['physics_bound_env_steps_per_s']:.0f} env steps/s",
+    lines = [f"raw physics bound (1 core): {r['physics_bound_env_steps_per_s']:.0f} env steps/s at the start",
              "env steps/s            multi-process (x bound, learner busy)   in-process (x bound, learner busy)"]
     for method, by_n in r["system"].items():
+        first = next(iter(by_n.values()), {})
+        if "physics_bound_before" in first:
+            lines.append(f"  {method}: physics bound {first['physics_bound_before']:.0f} before, "
+                         f"{first['physics_bound_after']:.0f} after its phase; ratios to the mean")
         for n, v in by_n.items():
             note = f"   restarts {v['restarts']}" if v.get("restarts") else ""
             note += f"   in-process failures {v['inprocess_failures']}" if v.get("inprocess_failures") else ""
