@@ -10,8 +10,8 @@ to its in-process twin.
   same controls on one core (``sage bench env``'s bound), measured right
   before and right after that method's phase, with no service running, and
   averaged (``physics_bound_before`` / ``_after``; ``*_ratio_range``: the
-  ratio to the higher and to the lower of the two). This host's speed moves
-  by a third between consecutive measurements of the bound, so a bound taken
+  ratio to the higher and to the lower of the two). On this host the bound
+  moved by up to 70% between consecutive measurements, so a bound taken
   minutes away from the figure it divides is not a ratio of the same run.
   Steady state: counted from the services' ``status`` heartbeats
   (cumulative counters with the sender's clock) over ``measure_s`` after
