@@ -117,7 +117,7 @@ def test_step_meter_takes_each_components_cores_over_the_same_window():
 
 def test_bracketed_ratio_divides_by_the_bounds_measured_around_the_figure():
     r = bracketed_ratio(3000.0, 6000.0, 4000.0)
-    assert r["ratio"] == pytest.approx(0.6)                 # 3000 / mean(6000, 4000)
+    assert r["bound"] == pytest.approx(5000.0) and r["ratio"] == pytest.approx(0.6)   # 3000 / mean(6000, 4000)
     assert r["range"] == pytest.approx([0.5, 0.75])         # to the higher bound, to the lower
     same = bracketed_ratio(2500.0, 5000.0, 5000.0)
     assert same["ratio"] == pytest.approx(0.5) and same["range"] == pytest.approx([0.5, 0.5])

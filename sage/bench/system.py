@@ -250,10 +250,11 @@ def cpu_budget(cores: dict[str, float], env_steps_per_s: float, host_cpus: int, 
 
 def bracketed_ratio(rate: float, before: float, after: float) -> dict:
     """``rate`` against the physics bound measured just before and just after
-    it: the ratio to their mean, and the range from the higher to the lower."""
+    it: their mean (``bound``), the ratio to it, and the range from the higher to the lower."""
     if not (before > 0 and after > 0):
         raise ValueError(f"physics bounds must be > 0 (got {before}, {after})")
-    return {"ratio": rate / ((before + after) / 2), "range": [rate / max(before, after), rate / min(before, after)]}
+    bound = (before + after) / 2
+    return {"bound": bound, "ratio": rate / bound, "range": [rate / max(before, after), rate / min(before, after)]}
 
 
 def actor_step_cost(cores: dict[str, float], env_steps_per_s: float, shielded_by_service: bool) -> dict[str, float]:
@@ -673,9 +674,9 @@ class SystemBench:
             self.stop_all()
         inproc, inproc_busy, inproc_cores, failures = self._inprocess_system(counts, method)
         bound_after = self.measure_physics_bound()
-        bound, cpus = (bound_before + bound_after) / 2, host_cpus()
         multi_ratio = {n: bracketed_ratio(multi[n], bound_before, bound_after) for n in counts}
         inproc_ratio = {n: bracketed_ratio(inproc[n], bound_before, bound_after) for n in counts}
+        bound, cpus = multi_ratio[counts[0]]["bound"], host_cpus()
         return {str(n): {"multiprocess": multi[n], "inprocess": inproc[n],
                          "physics_bound": bound, "physics_bound_before": bound_before,
                          "physics_bound_after": bound_after,
