@@ -19,12 +19,9 @@ CHECKPOINT_LOAD_ERRORS = (pickle.UnpicklingError, EOFError, RuntimeError, zipfil
 
 
 def read_config(path: str | Path) -> TrainConfig:
-    """``TrainConfig.load`` that also rejects a JSON file that is not an object
-    (a ``FileNotFoundError`` or ``ValueError``/``TypeError`` for bad input)."""
-    raw = json.loads(Path(path).read_text())
-    if not isinstance(raw, dict):
-        raise ValueError(f"a run config is a JSON object, got {type(raw).__name__}")
-    return TrainConfig.from_dict(raw)
+    """``TrainConfig.load``: a ``FileNotFoundError`` or ``ValueError``/``TypeError`` for bad input
+    (not a JSON object, NaN/Infinity, nested too deeply, a field out of its type or range)."""
+    return TrainConfig.load(path)
 
 
 def read_checkpoint(path: str | Path) -> dict:

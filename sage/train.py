@@ -12,7 +12,6 @@ import dataclasses
 import json
 import logging
 import sys
-import types
 import typing
 from pathlib import Path
 
@@ -24,36 +23,69 @@ from deploy import ray_run
 from deploy.ray_run import ClusterError, RayPlacement, run_on_ray
 from deploy.sage_run import METRICS_OFFSETS, default_actor_count, parse_ids, run_supervised
 from deploy.supervisor import EXIT_GAVE_UP, SupervisorConfig
+from common.config_fields import check_range, field_help, parse_value
 from sage.errors import UsageError, nonneg_int, one_line, port, positive_float, positive_int, user_input
 from sage.runs import last_progress, load_run, read_config
-from services.config import FINAL_EVAL_SEED, TrainConfig
+from services.config import FINAL_EVAL_SEED, UNLIMITED_UPDATES, TrainConfig
 from services.launcher import ROLES, run_inprocess
 from services.learner.service import tensorboard_available
 
 
-def register(commands, bench) -> None:
+# Flags of `sage train` that set a TrainConfig field of the same name: derived from the
+# field (its type, range or choices, help and default), and applied only when typed, so
+# `--config FILE --seed 3` runs FILE's config with seed 3 and nothing else changed.
+TRAIN_FLAGS = ("scenario", "method", "updates", "minutes", "actors", "shields", "envs_per_actor", "chunk_len",
+               "max_lag", "seed", "run_id", "run_dir", "eval_episodes")
+# `sage up`'s fresh-run flags (the rest of its flags place services, not configure the run)
+UP_FLAGS = ("scenario", "method", "updates", "minutes", "envs_per_actor", "seed", "run_id", "run_dir")
+
+
+def add_config_flags(p, names) -> None:
+    """``--NAME`` for each TrainConfig field in ``names``, default None (not given)."""
     d = TrainConfig()
+    by_name = {f.name: f for f in dataclasses.fields(TrainConfig)}
+    hints = typing.get_type_hints(TrainConfig)
+    for name in names:
+        f = by_name[name]
+        default = getattr(d, name)
+        help_text = field_help(f) + (f" (default {default})" if default not in ("", None) else "")
+        p.add_argument("--" + name.replace("_", "-"), dest=name, default=None, type=_flag_type(f, hints[name]),
+                       choices=f.metadata.get("choices"), help=help_text)
+
+
+def _flag_type(f: dataclasses.Field, hint):
+    """argparse ``type=`` of a field's flag: the text as the field's type, in its range."""
+    def parse(text: str):
+        try:
+            value = parse_value(text, hint, "--" + f.name.replace("_", "-"))
+            check_range(f, value, "--" + f.name.replace("_", "-"))
+        except ValueError as exc:
+            wanted = str(exc).split(" must be ", 1)[-1].rsplit(", got ", 1)[0]
+            raise argparse.ArgumentTypeError(f"expected {wanted}, got {text!r}") from None
+        return value
+    parse.__name__ = f.name
+    return parse
+
+
+def apply_config_flags(cfg: TrainConfig, args, names) -> None:
+    """The flags of ``names`` the user gave, onto ``cfg``."""
+    for name in names:
+        value = getattr(args, name)
+        if value is not None:
+            cfg.set(name, value)
+
+
+def register(commands, bench) -> None:
     p = commands.add_parser("train", help="train a method with actor/shield/learner services")
-    p.add_argument("--scenario", default=d.scenario, choices=sorted(SCENARIOS))
-    p.add_argument("--method", default=d.method, choices=ALL_METHODS)
-    p.add_argument("--updates", type=positive_int, default=None,
-                   help=f"learner updates (budget; default {d.updates}, or unlimited when --minutes is given)")
-    p.add_argument("--minutes", type=positive_float, default=d.minutes, help="wall-clock budget (whichever first)")
-    p.add_argument("--actors", type=positive_int, default=d.actors)
-    p.add_argument("--shields", type=positive_int, default=d.shields,
-                   help="shield shards; actor i asks shard i %% shields (default %(default)s)")
-    p.add_argument("--envs-per-actor", type=positive_int, default=d.envs_per_actor)
-    p.add_argument("--chunk-len", type=positive_int, default=d.chunk_len)
-    p.add_argument("--max-lag", type=nonneg_int, default=d.max_lag)
-    p.add_argument("--seed", type=nonneg_int, default=d.seed)
-    p.add_argument("--run-id", default="")
-    p.add_argument("--run-dir", default="")
-    p.add_argument("--mode", default=d.mode, choices=("inprocess", "supervised", "ray"),
-                   help="ray: the supervised processes placed on a Ray cluster (--ray; extra .[cluster])")
-    p.add_argument("--eval-episodes", type=nonneg_int, default=d.eval_episodes)
-    p.add_argument("--metrics-port", type=port, default=d.ports.inprocess,
-                   help="Prometheus port (in-process registry); 0 = off")
-    p.add_argument("--config", default=None, help="start from a saved config JSON (flags override)")
+    add_config_flags(p, TRAIN_FLAGS)
+    p.add_argument("--mode", default=None, choices=("inprocess", "supervised", "ray"),
+                   help="where the services run (default: the config's, inprocess for a fresh run); "
+                        "ray: the supervised processes placed on a Ray cluster (--ray; extra .[cluster])")
+    p.add_argument("--metrics-port", type=port, default=None,
+                   help="Prometheus port (in-process registry); 0 = off (default)")
+    p.add_argument("--config", default=None,
+                   help="run a saved config JSON (e.g. runs/<id>/config.json); only the flags and --set given "
+                        "here change it")
     p.add_argument("--human-slot", type=int, default=None, choices=(0, 1, 2),
                    help="put the scripted human partner in this carrier slot (exogenous, no tree)")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
@@ -97,12 +129,12 @@ def join_cluster(placement: RayPlacement, cfg: TrainConfig, roles=ROLES, actor_i
         ray_run.check_cluster(ray, placement, names)
 
 
-def train_mode(args) -> str:
-    """``--mode``, where ``--ray ADDRESS`` alone means ``--mode ray``."""
+def train_mode(args, cfg: TrainConfig | None = None) -> str:
+    """``--mode`` (else the config's), where ``--ray ADDRESS`` alone means ``--mode ray``."""
     if args.ray is None:
         if args.ray_resources and args.mode != "ray":
             raise UsageError("--ray-resources places services on a Ray cluster: use it with --mode ray or --ray")
-        return args.mode
+        return args.mode or (cfg.mode if cfg is not None else "inprocess")
     if args.mode == "supervised":
         raise UsageError(f"--ray {args.ray}: use --mode ray (the supervised processes placed on the cluster)")
     return "ray"
@@ -123,123 +155,39 @@ def config_from_args(args) -> TrainConfig:
 
 
 def _apply_args(cfg: TrainConfig, args) -> TrainConfig:
-    if args.updates is not None:
-        updates = args.updates
-    elif args.minutes:
-        updates = 10**9  # a wall-clock budget alone: train until the minutes are spent
-    else:
-        updates = cfg.updates
-    cfg.scenario, cfg.method, cfg.updates, cfg.minutes = args.scenario, args.method, updates, args.minutes
-    cfg.actors, cfg.envs_per_actor, cfg.chunk_len = args.actors, args.envs_per_actor, args.chunk_len
-    cfg.shields = args.shields
-    # Ray places the same processes as the supervisor: the run config's mode stays "supervised"
-    mode = train_mode(args)
-    cfg.max_lag, cfg.seed, cfg.eval_episodes = args.max_lag, args.seed, args.eval_episodes
-    cfg.mode = "supervised" if mode == "ray" else mode
-    cfg.ports.inprocess = args.metrics_port
+    """What the user typed, onto ``cfg`` (the defaults, or a loaded ``--config``): only
+    given flags and ``--set`` items change it, so a saved config runs exactly as saved."""
+    apply_config_flags(cfg, args, TRAIN_FLAGS)
+    if args.minutes is not None and args.updates is None:
+        cfg.updates = UNLIMITED_UPDATES   # a wall-clock budget alone: train until the minutes are spent
+    if args.mode is not None:
+        # Ray places the same processes as the supervisor: the run config's mode stays "supervised"
+        cfg.mode = "supervised" if train_mode(args) == "ray" else args.mode
+    elif args.ray is not None:
+        cfg.mode = "supervised"
+    if args.metrics_port is not None:
+        cfg.ports.inprocess = args.metrics_port
     if args.human_slot is not None:
-        cfg.env = dataclasses.replace(cfg.env, human_slot=args.human_slot)
+        cfg.set("env.human_slot", args.human_slot)
     for item in args.set:
         apply_override(cfg, item)
-    if args.run_id:
-        cfg.run_id = args.run_id
-    if args.run_dir:
-        cfg.run_dir = args.run_dir
     if cfg.mode == "supervised":
         cfg.actor.exit_on_unhealthy = True  # let the supervisor see and restart it
     return cfg.resolve()
 
 
 def apply_override(cfg: TrainConfig, item: str) -> None:
-    """``SECTION.KEY=VALUE`` onto the config (env/algo dicts, a nested dataclass, or
-    ``train.KEY`` for a plain top-level TrainConfig field). The value is parsed as
-    JSON (else taken as a string) and must have the field's type; a bad item is a
-    ``SystemExit`` with a one-line message naming it."""
+    """``SECTION.KEY=VALUE`` onto the config (``env.KEY``, ``algo.KEY``, ``actor.KEY``, ...,
+    ``train.KEY`` for a top-level field). The value is parsed as JSON (else taken as a
+    string) and must have the field's type; a bad item is a ``SystemExit`` with a one-line
+    message naming it."""
     if "=" not in item or "." not in item.split("=", 1)[0]:
         raise SystemExit(f"--set expects SECTION.KEY=VALUE, got {item!r}")
     path, raw = item.split("=", 1)
-    section, key = path.split(".", 1)
     try:
-        value = json.loads(raw)
-    except json.JSONDecodeError:
-        value = raw
-    if section in ("env", "algo"):
-        owner = type(getattr(cfg, section))
-        hints = typing.get_type_hints(owner)
-        if key in hints:
-            value = _typed_override(path, raw, value, hints[key])
-        try:
-            cfg.override(section, key, value)
-        except (ValueError, TypeError) as exc:
-            raise SystemExit(f"--set {path}={raw}: {one_line(exc)}") from None
-        return
-    if section == "train":
-        plain = {f.name for f in dataclasses.fields(cfg)
-                 if not dataclasses.is_dataclass(getattr(cfg, f.name)) and f.name not in ("env", "algo")}
-        if key not in plain:
-            raise SystemExit(f"--set: unknown config field {path!r} (train.* takes {', '.join(sorted(plain))})")
-        setattr(cfg, key, _typed_override(path, raw, value, typing.get_type_hints(type(cfg))[key]))
-        return
-    target = getattr(cfg, section, None)
-    if not dataclasses.is_dataclass(target) or key not in {f.name for f in dataclasses.fields(target)}:
-        raise SystemExit(f"--set: unknown config field {path!r}")
-    setattr(target, key, _typed_override(path, raw, value, typing.get_type_hints(type(target))[key]))
-
-
-def _typed_override(path: str, raw: str, value, hint):
-    """``value`` (parsed from ``raw``) checked against the field's type ``hint``;
-    a ``SystemExit`` naming the item when it does not fit."""
-    try:
-        return _coerce(value, raw, hint)
-    except TypeError as exc:
-        raise SystemExit(f"--set {path}={raw}: expected {exc}") from None
-
-
-def _coerce(value, raw, hint):
-    """``value`` as type ``hint`` (int, float, bool, str, X | None, tuple[...], list[...],
-    a nested dataclass as a map); a ``TypeError`` naming the expected type otherwise."""
-    origin, targs = typing.get_origin(hint), typing.get_args(hint)
-    if origin in (typing.Union, types.UnionType):
-        if value is None and type(None) in targs:
-            return None
-        inner = [t for t in targs if t is not type(None)]
-        errors = []
-        for t in inner:
-            try:
-                return _coerce(value, raw, t)
-            except TypeError as exc:
-                errors.append(str(exc))
-        raise TypeError(" or ".join(errors + (["null"] if type(None) in targs else [])))
-    if hint is bool:
-        if isinstance(value, bool):
-            return value
-        raise TypeError("true or false")
-    if hint is int:
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
-        raise TypeError("an integer")
-    if hint is float:
-        if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
-        raise TypeError("a number")
-    if hint is str:
-        return value if isinstance(value, str) else raw   # e.g. run_id=123 stays the string "123"
-    if origin in (tuple, list):
-        if not isinstance(value, list):
-            raise TypeError(f"a JSON list ({hint})")
-        if origin is tuple and targs and targs[-1] is not Ellipsis:
-            if len(value) != len(targs):
-                raise TypeError(f"a JSON list of {len(targs)} ({hint})")
-            items = [_coerce(v, json.dumps(v), t) for v, t in zip(value, targs)]
-        else:
-            t = targs[0] if targs else typing.Any
-            items = [v if t is typing.Any else _coerce(v, json.dumps(v), t) for v in value]
-        return tuple(items) if origin is tuple else items
-    if dataclasses.is_dataclass(hint):
-        if isinstance(value, dict):
-            return value
-        raise TypeError(f"a JSON map of {hint.__name__} fields")
-    return value
+        cfg.set_text(path, raw)
+    except ValueError as exc:
+        raise SystemExit(f"--set {path}={raw}: {one_line(exc)}") from None
 
 
 def final_eval(cfg: TrainConfig, params: dict) -> dict:
@@ -250,12 +198,12 @@ def final_eval(cfg: TrainConfig, params: dict) -> dict:
 def cmd_train(args) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     cfg = config_from_args(args)
-    mode = train_mode(args)
+    mode = train_mode(args, cfg)
     run = RunDir(cfg.run_dir)
     clash = _resume_clash(run, cfg)
     if clash:
         print(f"sage train: {run.root} holds a run of {clash}; the learner would resume its checkpoints. "
-              "Use another --run-dir (or the same method and scenario to resume).", file=sys.stderr)
+              "Use another --run-dir or --run-id (or the run's own config to resume it).", file=sys.stderr)
         return 2
     placement = ray_placement(args) if mode == "ray" else None
     if placement is not None:
@@ -327,7 +275,22 @@ def _resume_clash(run: RunDir, cfg: TrainConfig) -> str | None:
         return "an unreadable config.json"
     if (prev.get("method"), prev.get("scenario")) != (cfg.method, cfg.scenario):
         return f"method {prev.get('method')!r} on {prev.get('scenario')!r}"
+    # what the checkpoints were trained under: a resume may change the budget and the
+    # placement, not what is being learned
+    now = json.loads(cfg.to_json())
+    for key in ("seed", "env", "algo"):
+        if prev.get(key) != now[key]:
+            diff = _first_difference(prev.get(key), now[key], key)
+            return f"another {key} config ({diff})"
     return None
+
+
+def _first_difference(a, b, path: str) -> str:
+    if isinstance(a, dict) and isinstance(b, dict):
+        for k in sorted(set(a) | set(b)):
+            if a.get(k) != b.get(k):
+                return _first_difference(a.get(k), b.get(k), f"{path}.{k}")
+    return f"{path} {a!r} there, {b!r} now"
 
 
 def _num(o):

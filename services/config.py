@@ -10,15 +10,19 @@ the resolved JSON, their full field values.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import secrets
 import time
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from common.algos.config import AlgoConfig
 from common.algos.registry import ALL_METHODS
+from common.config_fields import bounded, check_fields, coerce, from_mapping, loads_json, parse_value
 from common.env.config import EnvConfig
+from common.env.scenarios import SCENARIOS
 from common.keys import check_id
 from common.rundir import atomic_write_text
 
@@ -37,7 +41,7 @@ class TransportConfig:
     certificate per role (``certs/{role}.pem``, CN = role). Empty = plain TCP.
     """
 
-    mode: str = "peer"
+    mode: str = bounded("peer", choices=("peer", "client"))
     connect: list[str] = field(default_factory=list)   # e.g. ["tcp/10.0.0.1:7447"] (a router)
     listen: list[str] = field(default_factory=list)    # e.g. ["tcp/127.0.0.1:0"]
     tls_root_ca: str = ""        # CA certificate the router's certificate must chain to
@@ -45,115 +49,130 @@ class TransportConfig:
     tls_key: str = ""            # its private key, e.g. "certs/{role}.key"
     tls_verify_name: bool = True  # the router's certificate must name the host in the endpoint
 
+    def validate(self, prefix: str = "transport.") -> None:
+        check_fields(self, prefix)
+
 
 @dataclass
 class PortsConfig:
     """Prometheus ports; 0 disables. Actor ``i`` uses ``actor_base + i``."""
 
-    learner: int = 0
-    shield: int = 0
-    actor_base: int = 0
-    inprocess: int = 0   # the single registry of `sage train --mode inprocess`
+    learner: int = bounded(0, ge=0, le=65535)
+    shield: int = bounded(0, ge=0, le=65535)
+    actor_base: int = bounded(0, ge=0, le=65535)
+    inprocess: int = bounded(0, ge=0, le=65535)   # the single registry of `sage train --mode inprocess`
     bind: str = "127.0.0.1"   # address the metric servers listen on; "0.0.0.0" for remote scrapers
+
+    def validate(self, prefix: str = "ports.") -> None:
+        check_fields(self, prefix)
 
 
 @dataclass
 class ShieldConfig:
-    max_batch: int = 256          # QP rows per solve_cbf_qp call
-    window_s: float = 0.002       # wait at most this long for more requests once one arrived
-    backend: str = "default"      # common.shield.qp.BACKENDS name
+    max_batch: int = bounded(256, ge=1, le=65536)        # QP rows per solve_cbf_qp call
+    # wait at most this long for more requests once one arrived (longer only delays every actor)
+    window_s: float = bounded(0.002, ge=0.0, le=1.0)
+    # common.shield.qp.BACKENDS names (listed here so the config does not import the numba kernels;
+    # tests/test_config.py keeps the two equal)
+    backend: str = bounded("default", choices=("default", "dual_active_set", "osqp"))
     # Queries waiting for a batch, at most (one per actor per step is the normal load;
     # beyond this a flood is answered "overloaded" at once and counted, memory stays bounded)
-    max_queue: int = 1024
+    max_queue: int = bounded(1024, ge=1, le=65536)
+
+    def validate(self, prefix: str = "shield.") -> None:
+        check_fields(self, prefix)
 
 
 @dataclass
 class ActorConfig:
-    shield_timeout_s: float = 1.0      # one query; no answer -> retry (nothing executed)
+    # one query; no answer -> retry (nothing executed). At most 10 min: a longer wait is a dead shield.
+    shield_timeout_s: float = bounded(1.0, gt=0.0, le=600.0)
     # An answer executes only if it passes the actor's own check (common/shield/verify.py):
     # rows met to this tolerance (relative to max(1, ||C_i||)), box, human block untouched.
-    # The exact QP meets rows to 1e-10; 1e-6 leaves room for float64 round-off only.
-    verify_tol: float = 1e-6
+    # The exact QP meets rows to 1e-10; 1e-6 leaves room for float64 round-off only,
+    # and above 1e-3 (a millimetre on a metre-scaled row) the check would no longer certify safety.
+    verify_tol: float = bounded(1e-6, gt=0.0, le=1e-3)
     # Shield queries carry only the rows the action box does not satisfy everywhere
     # (common/shield/prune.py: exact, a dropped row can never be active or violated);
     # most wall rows are far from binding, and the rows are most of a query's bytes.
     prune_rows: bool = True
-    unhealthy_after_s: float = 10.0    # no shield answer this long -> status "unhealthy"
+    unhealthy_after_s: float = bounded(10.0, gt=0.0, le=3600.0)   # no shield answer this long -> "unhealthy"
     exit_on_unhealthy: bool = False    # supervised mode: exit(3) so the supervisor sees it
-    params_wait_s: float = 60.0        # max wait for the first parameters before unhealthy
+    params_wait_s: float = bounded(60.0, gt=0.0, le=86400.0)    # max wait for the first parameters
     # Pacing (bounded staleness at the source): an actor starts a new chunk only
     # while fewer than this many of its chunks were rolled out with its current
     # parameter version (1 = synchronous on-policy, 2 = one chunk of overlap) and
     # fewer than this many are unsettled at the learner (sent but not yet used or
     # dropped, from the backlog the learner broadcasts with its parameters).
     # Without the first rule actors outrun a slow learner and most chunks go stale;
-    # without the second, a learner slower than its actors still drops about one
-    # chunk in three as stale (measured: 56 of 156 in the main job), rolled out on
-    # cores the learner needed.
-    max_chunks_ahead: int = 2
-    pace_timeout_s: float = 120.0      # a lost params message never deadlocks: roll out anyway
+    # without the second, a learner slower than its actors drops chunks as stale,
+    # rolled out on cores the learner needed (docs/scaling.md).
+    max_chunks_ahead: int = bounded(2, ge=1, le=64)
+    pace_timeout_s: float = bounded(120.0, gt=0.0, le=86400.0)   # a lost params message never deadlocks
     # Fault injection (as RLlib's fault-injecting env): per env step, the actor process
     # exits abruptly with this probability. For supervised runs, which restart it; 0 = off.
-    chaos_crash_prob: float = 0.0
+    chaos_crash_prob: float = bounded(0.0, ge=0.0, lt=1.0)
     # Double-buffered sampling (as Sample Factory's): the K envs are two groups
     # that alternate, so one group's query is at the shield while the other group
-    # steps physics. Same chunks (all K envs, one version per step), same
-    # fail-closed rules; only the order of waiting changes. Needs K >= 2 and a
-    # shielded method (without a shield there is no round trip to hide). It halves
-    # the batch of every per-step call and doubles the queries, so it costs CPU:
-    # on this 2-core host 21-70 more actor and 19-45 more shield and router
-    # core-us per env step (two bench runs), and where the actor, shield and
-    # learner share the cores that costs more than the waiting it hides
-    # (2026-12-03: the main job 47-48 s pipelined vs 41 s synchronous; supervised
-    # sage 3.2-3.3k vs 3.4-3.6k env steps/s; docs/scaling.md). So off by default;
-    # turn it on where the shield's round trip is long against a step (another
-    # host) and the actor has its cores.
+    # steps physics. Same chunks, same fail-closed rules; only the order of waiting
+    # changes. Needs K >= 2 and a shielded method. Off by default: it doubles the
+    # per-step calls and queries, which costs more CPU than the wait it hides where
+    # actor, shield and learner share the cores (docs/scaling.md); turn it on where
+    # the shield's round trip is long against a step and the actor has its cores.
     pipeline: bool = False
     # Live decision stream (`sage watch RUN`): every this many steps the actor
     # publishes the step's leaves, predicate paths and QP correction norms on
     # sage/<run>/trace/<actor>. 0 = off; 10 costs one small message per 10 steps.
-    trace_every: int = 0
+    trace_every: int = bounded(0, ge=0, le=1_000_000)
+
+    def validate(self, prefix: str = "actor.") -> None:
+        check_fields(self, prefix)
+
+
+# Resource bounds of a run (memory and message sizes grow with their product):
+MAX_SAMPLES_PER_CHUNK = 1 << 18     # K x T of one actor's chunk (a chunk is one wire message)
+UNLIMITED_UPDATES = 10**9           # a wall-clock budget alone: train until the minutes are spent
 
 
 @dataclass
 class TrainConfig:
-    run_id: str = ""                   # filled with a fresh id by resolve()
-    scenario: str = "narrow_gate"
-    method: str = "sage"
-    actors: int = 1
+    run_id: str = bounded("", help="run id (default: a fresh timestamped one)")
+    scenario: str = bounded("narrow_gate", choices=sorted(SCENARIOS), help="scenario")
+    method: str = bounded("sage", choices=ALL_METHODS, help="method (common/algos/registry.py)")
+    actors: int = bounded(1, ge=1, le=1024, help="rollout actors")
     # Shield shards: actor i asks shard i % shields on its own key (sage/<run>/shield/<k>),
     # so one shield process stops being the bottleneck once actors outgrow it
     # (docs/scaling.md). One shard serves a few actors at the training batch size.
-    shields: int = 1
-    # K x T = 1024 samples per update: on narrow_gate (2 cores, in-process) SAGE
-    # reaches deployment SR 1.0 in 4 min with these (docs/results_narrow_gate.md)
-    envs_per_actor: int = 32           # K
-    chunk_len: int = 32                # T: steps per trajectory chunk
-    chunks_per_update: int = 0         # 0 -> one chunk per actor
-    updates: int = 100                 # budget in learner updates (~4 min on 2 cores: SAGE on narrow_gate learns to succeed) ...
-    minutes: float | None = None       # ... or wall-clock minutes (whichever first)
-    max_lag: int = 1                   # accept chunks from versions >= current - max_lag
-    learner_queue_chunks: int = 64     # bound of the learner's chunk queue and pending set (drops counted)
-    seed: int = 0
-    run_dir: str = ""                  # filled by resolve(): runs/<run_id>
-    mode: str = "inprocess"            # inprocess | supervised
-    checkpoint_every: int = 5          # updates between checkpoints (and at the end)
-    checkpoint_keep: int = 3
+    shields: int = bounded(1, ge=1, le=256, help="shield shards; actor i asks shard i %% shields")
+    # K x T = 1024 samples per update (docs/results_narrow_gate.md)
+    envs_per_actor: int = bounded(32, ge=1, le=4096, help="K: envs stepped together by one actor")
+    chunk_len: int = bounded(32, ge=1, le=4096, help="T: env steps per trajectory chunk")
+    chunks_per_update: int = bounded(0, ge=0, le=4096)   # 0 -> one chunk per actor
+    updates: int = bounded(100, ge=1, le=UNLIMITED_UPDATES,
+                           help="budget in learner updates (unlimited when only --minutes is given)")
+    minutes: float | None = bounded(None, gt=0.0, le=525_600.0, help="wall-clock budget (whichever first)")
+    max_lag: int = bounded(1, ge=0, le=1000, help="accept chunks from versions >= current - max_lag")
+    # bound of the learner's chunk queue and pending set (drops counted)
+    learner_queue_chunks: int = bounded(64, ge=1, le=4096)
+    seed: int = bounded(0, ge=0, le=2**31 - 1, help="run seed (envs, trees, layouts)")
+    run_dir: str = bounded("", help="run directory (default: runs/<run id>)")
+    mode: str = bounded("inprocess", choices=("inprocess", "supervised"))
+    checkpoint_every: int = bounded(5, ge=1, le=10**6)    # updates between checkpoints (and at the end)
+    checkpoint_keep: int = bounded(3, ge=0, le=10**4)
     resume: bool = True                # learner resumes from run_dir/checkpoints if present
-    status_period_s: float = 1.0
-    params_rebroadcast_s: float = 0.5
-    eval_episodes: int = 4             # final deterministic deployment eval (0 = skip)
-    eval_max_steps: int = 0            # 0 -> env default episode length
+    status_period_s: float = bounded(1.0, gt=0.0, le=3600.0)
+    params_rebroadcast_s: float = bounded(0.5, gt=0.0, le=3600.0)
+    eval_episodes: int = bounded(4, ge=0, le=100_000, help="final deterministic deployment eval episodes")
+    eval_max_steps: int = bounded(0, ge=0, le=10**6)       # 0 -> env default episode length
     # Deployment probe during training: every this many updates the learner runs
     # the deterministic trees (+ exact QP when shielded) on a few held-out episodes
     # and logs deploy_sr & co. The stochastic training SR can hide a deterministic
-    # policy that stalls (seen: SAGE on narrow_gate, training SR 0.9, deployment 0.0).
-    deploy_probe_every: int = 20       # 0 = off
-    deploy_probe_episodes: int = 8
+    # policy that stalls.
+    deploy_probe_every: int = bounded(20, ge=0, le=10**6)   # 0 = off
+    deploy_probe_episodes: int = bounded(8, ge=1, le=10_000)
     # torch intra-op threads of the learner (0 = torch's default). On 2 cores a
-    # second torch thread fights the actor/shield threads: measured in-process
-    # 10 s -> 1.8 s per 512-sample SAGE update with 1 thread.
-    torch_threads: int = 1
+    # second torch thread fights the actor/shield threads (docs/scaling.md).
+    torch_threads: int = bounded(1, ge=0, le=1024)
     # TensorBoard event files of the metrics rows under <run_dir>/tb/, when the
     # optional tensorboardX is installed (`pip install 'sage-transport[tensorboard]'`)
     tensorboard: bool = True
@@ -169,100 +188,31 @@ class TrainConfig:
 
     def __post_init__(self):
         if isinstance(self.env, dict):
-            self.env = build_dataclass(EnvConfig, {**self.env, "scenario": self.scenario})
+            self.env = from_mapping(EnvConfig, {**self.env, "scenario": self.scenario}, "env.")
         if isinstance(self.algo, dict):
-            self.algo = build_dataclass(AlgoConfig, {**self.algo, "seed": self.seed})
+            self.algo = from_mapping(AlgoConfig, {**self.algo, "seed": self.seed}, "algo.")
 
     # -------------------------------------------------------------- helpers
     def validate(self) -> "TrainConfig":
-        # Types first (a config.json or an override may carry "x" for a number):
-        # each plain field of this config and of its service sections must have
-        # its default's type (an int is fine for a float, a bool is not an int).
-        def check_types(obj, prefix: str) -> None:
-            for f in dataclasses.fields(obj):
-                value = getattr(obj, f.name)
-                default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
-                if dataclasses.is_dataclass(default):
-                    if f.name in ("transport", "ports", "shield", "actor"):
-                        if not isinstance(value, type(default)):
-                            raise ValueError(f"{prefix}{f.name} must be a map of {type(default).__name__} fields, "
-                                             f"got {value!r}")
-                        check_types(value, f"{f.name}.")
-                    continue   # env / algo: validated by their owners
-                if default is None:   # minutes: float | None
-                    ok = value is None or (isinstance(value, (int, float)) and not isinstance(value, bool))
-                    want = "a number or null"
-                elif isinstance(default, bool):
-                    ok, want = isinstance(value, bool), "true or false"
-                elif isinstance(default, int):
-                    ok, want = isinstance(value, int) and not isinstance(value, bool), "an integer"
-                elif isinstance(default, float):
-                    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-                    want = "a number"
-                elif isinstance(default, str):
-                    ok, want = isinstance(value, str), "a string"
-                elif isinstance(default, list):
-                    ok = isinstance(value, list) and all(isinstance(v, str) for v in value)
-                    want = "a list of strings"
-                else:
-                    continue
-                if not ok:
-                    raise ValueError(f"{prefix}{f.name} must be {want}, got {value!r}")
-
-        check_types(self, "")
+        """Each section's own checks (types, finiteness, ranges: ``check_fields``),
+        then the rules that tie fields of different sections together."""
+        check_fields(self)   # this section's plain fields and transport/ports/shield/actor
+        for section in (self.transport, self.ports, self.shield, self.actor):
+            section.validate()
+        self.env_config().validate("env.")
+        self.algo_config().validate("algo.")
         check_id(self.run_id, "run id")
-        self.env_config()   # EnvConfig rejects an unknown scenario (and names the known ones)
-        if self.minutes is not None and not self.minutes > 0:
-            raise ValueError(f"minutes must be > 0 when given, got {self.minutes}")
-        for name in ("seed", "eval_episodes", "eval_max_steps", "checkpoint_keep"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
-        if self.checkpoint_every < 1:
-            raise ValueError(f"checkpoint_every must be >= 1, got {self.checkpoint_every}")
-        for name in ("status_period_s", "params_rebroadcast_s"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for f in dataclasses.fields(self.ports):
-            if isinstance(getattr(self.ports, f.name), int) and not 0 <= getattr(self.ports, f.name) <= 65535:
-                raise ValueError(f"ports.{f.name} must be a port 0..65535 (0 = off), got {getattr(self.ports, f.name)}")
-        for name in ("shield_timeout_s", "unhealthy_after_s", "params_wait_s", "pace_timeout_s"):
-            if not getattr(self.actor, name) > 0:
-                raise ValueError(f"actor.{name} must be > 0, got {getattr(self.actor, name)}")
-        if not 0.0 <= self.actor.chaos_crash_prob < 1.0:
-            raise ValueError(f"actor.chaos_crash_prob must be in [0, 1), got {self.actor.chaos_crash_prob}")
+        if self.envs_per_actor * self.chunk_len > MAX_SAMPLES_PER_CHUNK:
+            raise ValueError(f"envs_per_actor x chunk_len = {self.envs_per_actor * self.chunk_len} samples per chunk "
+                             f"is over the {MAX_SAMPLES_PER_CHUNK} one chunk message may carry")
         if self.actor.chaos_crash_prob > 0 and self.mode != "supervised":
             raise ValueError("actor.chaos_crash_prob needs --mode supervised (a crashed thread is not restarted)")
-        if not self.actor.verify_tol > 0 or self.learner_queue_chunks < 1:
-            raise ValueError("actor.verify_tol must be > 0 and learner_queue_chunks >= 1")
-        if self.actor.trace_every < 0:
-            raise ValueError(f"actor.trace_every must be >= 0 (0 = off), got {self.actor.trace_every}")
-        if self.actor.max_chunks_ahead < 1:
-            raise ValueError(f"actor.max_chunks_ahead must be >= 1, got {self.actor.max_chunks_ahead}")
-        if self.method not in ALL_METHODS:
-            raise ValueError(f"method {self.method!r} not in {ALL_METHODS}")
-        if self.mode not in ("inprocess", "supervised"):
-            raise ValueError(f"mode {self.mode!r} must be inprocess or supervised")
-        for name in ("actors", "shields", "envs_per_actor", "chunk_len"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.updates < 1 and not self.minutes:
-            raise ValueError(f"need a budget: updates >= 1 or minutes > 0, got updates {self.updates}")
-        if self.torch_threads < 0:
-            raise ValueError("torch_threads must be >= 0 (0 = torch default)")
-        if self.deploy_probe_every < 0 or self.deploy_probe_episodes < 1:
-            raise ValueError("deploy_probe_every must be >= 0 and deploy_probe_episodes >= 1")
-        if self.max_lag < 0 or self.chunks_per_update < 0:
-            raise ValueError("max_lag and chunks_per_update must be >= 0")
         if self.shields > self.actors:
             raise ValueError(f"shields ({self.shields}) must be <= actors ({self.actors}): a shard without actors idles")
         if self.ports.shield and self.ports.actor_base and self.ports.shield < self.ports.actor_base \
                 < self.ports.shield + self.shields:
             raise ValueError(f"shield shard metric ports {self.ports.shield}..{self.ports.shield + self.shields - 1} "
                              f"overlap the actors' from {self.ports.actor_base}")
-        if self.shield.max_queue < 1:
-            raise ValueError(f"shield.max_queue must be >= 1, got {self.shield.max_queue}")
-        if self.shield.max_batch < 1 or self.shield.window_s < 0:
-            raise ValueError("shield.max_batch >= 1 and shield.window_s >= 0")
         return self
 
     @property
@@ -283,15 +233,51 @@ class TrainConfig:
     def algo_config(self) -> AlgoConfig:
         return dataclasses.replace(self.algo, seed=self.seed)
 
+    def set(self, path: str, value) -> None:
+        """Set the field at ``path`` (``seed``, ``train.seed``, ``actor.shield_timeout_s``,
+        ``env.max_steps``, ``env.reward.drop``) to ``value`` coerced to its type;
+        unknown paths and ill-typed values are a ``ValueError`` naming the path.
+        Ranges are checked by ``validate`` (``resolve``) once all values are in."""
+        chain, keys, hint = self._locate(path)
+        value = coerce(value, hint, ".".join(keys))
+        key = keys[-1]
+        # a frozen section (env.reward) is replaced whole, with the one field changed
+        for depth in range(len(chain) - 1, -1, -1):
+            node = chain[depth]
+            if not type(node).__dataclass_params__.frozen:
+                setattr(node, key, value)
+                break
+            value, key = dataclasses.replace(node, **{key: value}), keys[depth - 1]
+
+    def set_text(self, path: str, raw: str) -> None:
+        """``set`` from command-line text: JSON first (``1e-3``, ``true``, ``null``,
+        ``[0.05, 1]``), else the text itself for a string field."""
+        _, keys, hint = self._locate(path)
+        self.set(path, parse_value(raw, hint, ".".join(keys)))
+
+    def _locate(self, path: str):
+        """(the sections from this config down to the field's owner, the field's path as
+        keys without a leading ``train``, its type hint) of a dotted ``path``."""
+        keys = path.split(".")
+        if keys[0] == "train":
+            keys = keys[1:]
+        if keys in (["env", "scenario"], ["algo", "seed"]):
+            raise ValueError(f"{path} follows the run's own {keys[-1]!r} field; set that instead")
+        chain = [self]
+        for name in keys[:-1]:
+            child = getattr(chain[-1], name, None) if name in _field_names(chain[-1]) else None
+            if not dataclasses.is_dataclass(child):
+                raise ValueError(f"unknown config field {path!r}")
+            chain.append(child)
+        owner, key = chain[-1], keys[-1]
+        if key not in _field_names(owner) or dataclasses.is_dataclass(getattr(owner, key)):
+            where = ".".join(keys[:-1]) or "train"
+            raise ValueError(f"unknown config field {path!r} ({where} has {', '.join(sorted(_field_names(owner)))})")
+        return chain, keys, typing.get_type_hints(type(owner))[key]
+
     def override(self, section: str, key: str, value) -> None:
-        """Set ``env.KEY`` or ``algo.KEY`` (validated by the owner dataclass)."""
-        owner = {"env": EnvConfig, "algo": AlgoConfig}[section]
-        if (section, key) in (("env", "scenario"), ("algo", "seed")):
-            raise ValueError(f"{section}.{key} follows the run's own {key!r} field; set that instead")
-        values = dataclasses.asdict(getattr(self, section))
-        if key not in values:
-            raise ValueError(f"unknown {owner.__name__} field {key!r}")
-        setattr(self, section, build_dataclass(owner, {**values, key: value}))
+        """Set ``env.KEY`` or ``algo.KEY`` (``set`` with the section named apart)."""
+        self.set(f"{section}.{key}", value)
 
     def resolve(self) -> "TrainConfig":
         """Fill run id / run dir; env and algo follow the run's scenario and seed."""
@@ -305,51 +291,37 @@ class TrainConfig:
     def to_json(self) -> str:
         return json.dumps(dataclasses.asdict(self), indent=2, sort_keys=True, default=_json_default)
 
+    def fingerprint(self) -> str:
+        """A hash of everything that decides what the run computes: the resolved config
+        without where it is written or how it is watched (run id and dir, ports,
+        endpoints, certificates, logging cadence)."""
+        d = dataclasses.asdict(self)
+        for key in _NOT_IN_FINGERPRINT:
+            d.pop(key, None)
+        text = json.dumps(d, sort_keys=True, default=_json_default, separators=(",", ":"))
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
     def save(self, path: str | Path) -> Path:
         """Atomically: other processes (services, `sage eval`) read it back."""
         return atomic_write_text(path, self.to_json() + "\n")
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
-        d = dict(d)
-        nested = {"transport": TransportConfig, "ports": PortsConfig,
-                  "shield": ShieldConfig, "actor": ActorConfig}
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise ValueError(f"unknown config keys {sorted(unknown)}")
-        for k, typ in nested.items():
-            if k in d and isinstance(d[k], dict):
-                sub_known = {f.name for f in dataclasses.fields(typ)}
-                bad = set(d[k]) - sub_known
-                if bad:
-                    raise ValueError(f"unknown {k} config keys {sorted(bad)}")
-                d[k] = typ(**d[k])
-        return cls(**d).validate()
+        if not isinstance(d, dict):
+            raise ValueError(f"a run config is a JSON object, got {type(d).__name__}")
+        return from_mapping(cls, d).validate()
 
     @classmethod
     def load(cls, path: str | Path) -> "TrainConfig":
-        return cls.from_dict(json.loads(Path(path).read_text()))
+        return cls.from_dict(loads_json(Path(path).read_text()))
 
 
-def build_dataclass(cls, values: dict):
-    """``cls(**values)`` after turning JSON lists/maps back into the tuple and
-    nested-dataclass fields of ``cls`` (the resolved config is JSON)."""
-    out = {}
-    by_name = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = set(values) - set(by_name)
-    if unknown:
-        raise ValueError(f"unknown {cls.__name__} keys {sorted(unknown)}")
-    for name, v in values.items():
-        f = by_name[name]
-        default = f.default if f.default is not dataclasses.MISSING else (
-            f.default_factory() if f.default_factory is not dataclasses.MISSING else None)
-        if dataclasses.is_dataclass(default) and isinstance(v, dict):
-            v = build_dataclass(type(default), v)
-        elif isinstance(default, tuple) and isinstance(v, list):
-            v = tuple(v)
-        out[name] = v
-    return cls(**out)
+# Where a run is written and how it is watched: not part of what it computes.
+_NOT_IN_FINGERPRINT = ("run_id", "run_dir", "transport", "ports", "status_period_s", "tensorboard")
+
+
+def _field_names(obj) -> set[str]:
+    return {f.name for f in dataclasses.fields(obj)}
 
 
 def _json_default(o):

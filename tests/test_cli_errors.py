@@ -311,7 +311,7 @@ def test_set_values_take_the_field_type():
     assert cfg.env.max_steps is None and cfg.env.grasp_solref == (0.05, 1.0)
     for item in ("train.updates=abc", "train.updates=1.5", "train.resume=1", "algo.actor_lr=x",
                  "env.human_slot=x", "env.grasp_solref=3", "transport.connect=5"):
-        with pytest.raises(SystemExit, match="expected"):
+        with pytest.raises(SystemExit, match=r"must be (an integer|true or false|a number|a list)"):
             apply_override(cfg, item)
 
 
@@ -323,7 +323,13 @@ def test_validate_rejects_bad_config_values():
                 {"status_period_s": 0}):
         with pytest.raises(ValueError):
             TrainConfig(run_id="t", **bad).validate()
-    TrainConfig(run_id="t", minutes=2, updates=0).validate()   # a wall-clock budget alone is fine
+    from services.config import UNLIMITED_UPDATES
+
+    TrainConfig(run_id="t", minutes=2, updates=UNLIMITED_UPDATES).validate()   # a wall-clock budget alone
+    for bad in ({"updates": 0}, {"minutes": float("nan")}, {"minutes": float("inf")}, {"envs_per_actor": 10**9},
+                {"chunk_len": 10**9}, {"envs_per_actor": 4096, "chunk_len": 4096}):
+        with pytest.raises(ValueError):
+            TrainConfig(run_id="t", **bad).validate()
 
 
 def test_python_dash_m_sage_prints_one_line(files):

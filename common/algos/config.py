@@ -2,7 +2,9 @@
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
+
+from common.config_fields import bounded, check_fields, from_mapping
 
 
 @dataclass
@@ -11,20 +13,20 @@ class AlgoConfig:
     # Tuned on narrow_gate, 2 cores (docs/results_narrow_gate.md): the update cost is
     # dominated by per-minibatch overhead (autograd calls, TALO HVP), so few large minibatches;
     # 1e-3 lets the leaf controllers move within a 4-minute budget.
-    actor_lr: float = 1e-3
-    critic_lr: float = 1e-3
-    epochs: int = 4
-    minibatches: int = 2
-    clip: float = 0.2                 # epsilon_clip of Eq. (ppo_surrogates)
-    gamma: float = 0.99
-    gae_lambda: float = 0.95
-    ent_coef: float = 1e-3            # bonus on the proposal entropy (log_std)
-    vf_coef: float = 1.0              # scales the critic loss (own optimizer)
-    max_grad_norm: float = 10.0
+    actor_lr: float = bounded(1e-3, gt=0.0, le=1.0)
+    critic_lr: float = bounded(1e-3, gt=0.0, le=1.0)
+    epochs: int = bounded(4, ge=1, le=1000)
+    minibatches: int = bounded(2, ge=1, le=4096)
+    clip: float = bounded(0.2, gt=0.0, le=1.0)                # epsilon_clip of Eq. (ppo_surrogates)
+    gamma: float = bounded(0.99, gt=0.0, le=1.0)
+    gae_lambda: float = bounded(0.95, ge=0.0, le=1.0)
+    ent_coef: float = bounded(1e-3, ge=0.0, le=100.0)           # bonus on the proposal entropy (log_std)
+    vf_coef: float = bounded(1.0, ge=0.0, le=1e3)             # scales the critic loss (own optimizer)
+    max_grad_norm: float = bounded(10.0, gt=0.0, le=1e6)
     normalize_advantages: bool = True
     # TALO, Eq. (talo_projection)
-    talo_sigma: float = 1.0
-    talo_eps: float = 1e-8
+    talo_sigma: float = bounded(1.0, ge=0.0, le=1e6)
+    talo_eps: float = bounded(1e-8, ge=0.0, le=1.0)
     # How the joint methods (talo_cbf, sage, joint_cbf) apply their direction g:
     #   "adam":   -g is handed to the per-carrier Adams after global norm clipping
     #             (max_grad_norm); the entropy gradient is added after the projection.
@@ -39,74 +41,52 @@ class AlgoConfig:
     # condition on every minibatch (adam: talo_cbf 81%, sage 98%) but needs eta tuned to
     # the gradient scale, which grew during training (eta 0.1: talo_cbf's W_gap averaged
     # ~600 over 40 updates).
-    talo_step: str = "adam"
+    talo_step: str = bounded("adam", choices=("adam", "direct"))
     # eta_theta of the direct step, from {0.02, 0.05, 0.1, 0.2} on that bandit: 0.02 learned
     # slowest, 0.1 let W_gap blow up over 40 updates, 0.2 made a seed's reward fall within 20.
     # Its steps are about 2x Adam's (actor_lr=1e-3) in parameter norm.
-    talo_eta: float = 0.05
+    talo_eta: float = bounded(0.05, gt=0.0, le=10.0)
     # HAPPO carrier order: "update" (drawn once per update, as HARL draws it once per
     # training call) or "minibatch" (redrawn every minibatch; the old behaviour)
-    happo_order: str = "update"
+    happo_order: str = bounded("update", choices=("update", "minibatch"))
     # learner diagnostics: QP solves of a_ST (correction_st) on this many evenly
     # spaced samples per update (0: off)
-    diag_qp_samples: int = 256
+    diag_qp_samples: int = bounded(256, ge=0, le=65536)
     # schedules over training progress p in [0, 1] (geometric interpolation)
-    tau_start: float = 1.0            # ST backward temperature, Eq. (st_gate)
-    tau_end: float = 0.1
-    kappa_start: float = 1.0          # SAIL penalty, Eq. (sail_projection)
-    kappa_end: float = 30.0
+    tau_start: float = bounded(1.0, gt=0.0, le=100.0)           # ST backward temperature, Eq. (st_gate)
+    tau_end: float = bounded(0.1, gt=0.0, le=100.0)
+    kappa_start: float = bounded(1.0, gt=0.0, le=1e6)         # SAIL penalty, Eq. (sail_projection)
+    kappa_end: float = bounded(30.0, gt=0.0, le=1e6)
     # learner-side SAIL gradient: "implicit" (Eq. sail_jacobian at the actors'
     # converged center, one solve) or "unrolled" (differentiate every Newton step)
-    sail_grad: str = "implicit"
+    sail_grad: str = bounded("implicit", choices=("implicit", "unrolled"))
     # critic, Eq. (team_context)
-    critic_hidden: int = 128
-    encoder_latent: int = 32
+    critic_hidden: int = bounded(128, ge=1, le=4096)
+    encoder_latent: int = bounded(32, ge=1, le=1024)
     critic_uses_state: bool = False   # append the env's global state to V's input
     # trees
-    tree_depth: int = 4
-    init_log_std: float = -0.5
+    tree_depth: int = bounded(4, ge=1, le=12)    # 2^depth leaves per carrier
+    init_log_std: float = bounded(-0.5, ge=-10.0, le=2.0)
     # sparse trees (common/policy/tree.py TreeConfig): at most split_k features per split,
     # leaf_k per leaf gain row; 0 = dense. One feature per split: every predicate is one
     # threshold in physical units, at no measured cost (docs/results_sparse_trees.md).
-    split_k: int = 1
-    leaf_k: int = 0
-    seed: int = 0
+    split_k: int = bounded(1, ge=0, le=4096)
+    leaf_k: int = bounded(0, ge=0, le=4096)
+    seed: int = bounded(0, ge=0, le=2**31 - 1)
 
     def __post_init__(self) -> None:
-        positive = ("actor_lr", "critic_lr", "clip", "max_grad_norm", "tau_start", "tau_end",
-                    "kappa_start", "kappa_end", "talo_eta")
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise ValueError(f"AlgoConfig.{name} must be > 0 (got {getattr(self, name)})")
-        for name in ("epochs", "minibatches", "tree_depth", "critic_hidden",
-                     "encoder_latent"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"AlgoConfig.{name} must be >= 1 (got {getattr(self, name)})")
-        if not (0 < self.gamma <= 1 and 0 <= self.gae_lambda <= 1):
-            raise ValueError("AlgoConfig needs 0 < gamma <= 1 and 0 <= gae_lambda <= 1")
-        if self.sail_grad not in ("implicit", "unrolled"):
-            raise ValueError(f"AlgoConfig.sail_grad must be 'implicit' or 'unrolled' (got {self.sail_grad!r})")
-        if self.talo_step not in ("adam", "direct"):
-            raise ValueError(f"AlgoConfig.talo_step must be 'adam' or 'direct' (got {self.talo_step!r})")
-        if self.happo_order not in ("update", "minibatch"):
-            raise ValueError(f"AlgoConfig.happo_order must be 'update' or 'minibatch' (got {self.happo_order!r})")
-        if int(self.split_k) < 0 or int(self.leaf_k) < 0:
-            raise ValueError(f"AlgoConfig.split_k and leaf_k must be >= 0, 0 = dense (got {self.split_k}, {self.leaf_k})")
-        if int(self.diag_qp_samples) < 0:
-            raise ValueError(f"AlgoConfig.diag_qp_samples must be >= 0 (got {self.diag_qp_samples})")
-        if self.talo_sigma < 0 or self.talo_eps < 0 or self.ent_coef < 0:
-            raise ValueError("AlgoConfig.talo_sigma, talo_eps and ent_coef must be >= 0")
+        self.validate()
+
+    def validate(self, prefix: str = "AlgoConfig.") -> None:
+        """Types, finiteness and each field's range (``bounded``); a ``ValueError`` naming the field."""
+        check_fields(self, prefix)
 
     def to_dict(self) -> dict:
         return asdict(self)
 
     @classmethod
     def from_dict(cls, d: dict) -> "AlgoConfig":
-        known = {f.name for f in fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise ValueError(f"unknown AlgoConfig keys: {sorted(unknown)}")
-        return cls(**d)
+        return from_mapping(cls, d)
 
 
 def geometric(start: float, end: float, progress: float) -> float:
