@@ -8,6 +8,7 @@
     learner_version.json    the highest parameter version a learner published (versions never repeat)
     checkpoints/            atomic learner checkpoints (common/checkpoint.py)
     summary.json            final summary and deployment evaluation
+    evaluated_params.npz    the tree parameters the final evaluation ran (per checkpoint version)
     status.json             the supervisor's live status snapshot
     supervisor.jsonl        the supervisor's events
     logs/<service>.log      each supervised child's stdout/stderr
@@ -40,6 +41,7 @@ class RunDir:
     learner_version = property(lambda self: self.root / "learner_version.json")
     checkpoints = property(lambda self: self.root / "checkpoints")
     summary = property(lambda self: self.root / "summary.json")
+    evaluated_params = property(lambda self: self.root / "evaluated_params.npz")
     status = property(lambda self: self.root / "status.json")
     supervisor_events = property(lambda self: self.root / "supervisor.jsonl")
     logs = property(lambda self: self.root / "logs")

@@ -11,13 +11,18 @@ import argparse
 import dataclasses
 import json
 import logging
+import os
 import sys
 import typing
 from pathlib import Path
 
+import numpy as np
+
 from common.algos.registry import ALL_METHODS, method_spec
 from common.env.scenarios import SCENARIOS
+from common.checkpoint import list_checkpoints, load_checkpoint
 from common.evaluation.deployment import evaluate_policy
+from common.policy.tree_torch import policy_params_from_checkpoint
 from common.rundir import RunDir, atomic_write_text
 from deploy import ray_run
 from deploy.ray_run import ClusterError, RayPlacement, run_on_ray
@@ -195,6 +200,46 @@ def final_eval(cfg: TrainConfig, params: dict) -> dict:
                            shielded=method_spec(cfg.method).shielded, max_steps=cfg.eval_max_steps or None)
 
 
+def final_evals(cfg: TrainConfig, params: dict, version) -> tuple[dict, list[dict]]:
+    """The final evaluation: of the final parameters alone (``eval_checkpoints`` 1), or of
+    each of the last ``eval_checkpoints`` checkpoints on the same held-out episodes, with
+    their mean as the run's figure. Returns (the evaluation reported, one record per
+    evaluated checkpoint: version, its evaluation and the tree parameters evaluated)."""
+    evaluated = [(version, params)]
+    if cfg.eval_checkpoints > 1:
+        evaluated = last_checkpoint_params(RunDir(cfg.run_dir).checkpoints, cfg.eval_checkpoints) or evaluated
+    records = [{"version": v, "eval": final_eval(cfg, p), "params": p} for v, p in evaluated]
+    if len(records) == 1:
+        return records[0]["eval"], records
+    return mean_eval([r["eval"] for r in records]), records
+
+
+def last_checkpoint_params(directory: Path, n: int) -> list[tuple[int, dict]]:
+    """(version, tree parameters) of the newest ``n`` checkpoints that load, oldest first."""
+    out = []
+    for path in reversed(list_checkpoints(directory)):
+        try:
+            ck = load_checkpoint(path)
+            out.append((int(ck["version"]), policy_params_from_checkpoint(ck)))
+        except Exception:  # noqa: BLE001 - a damaged checkpoint is skipped, as resume skips it
+            continue
+        if len(out) == n:
+            break
+    return out[::-1]
+
+
+def mean_eval(evals: list[dict]) -> dict:
+    """The mean of several evaluations' numbers (per key; lists and maps of the first are kept)."""
+    out = dict(evals[0])
+    for key, value in evals[0].items():
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            values = [e.get(key) for e in evals if isinstance(e.get(key), (int, float))]
+            out[key] = float(np.mean(values)) if values else value
+    out["episodes_finished"] = int(sum(e.get("episodes_finished", 0) for e in evals))
+    out["checkpoints"] = len(evals)
+    return out
+
+
 def cmd_train(args) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     cfg = config_from_args(args)
@@ -230,15 +275,31 @@ def cmd_train(args) -> int:
         out.pop("status", None)
         summary = {"mode": "inprocess", **out}
     if cfg.eval_episodes > 0 and params is not None:
-        summary["eval"] = final_eval(cfg, params)
+        summary["eval"], evaluated = final_evals(cfg, params, summary.get("version"))
+        if len(evaluated) > 1:
+            summary["eval_by_checkpoint"] = [{"version": r["version"], **r["eval"]} for r in evaluated]
+        save_evaluated_params(run, evaluated)
         e = summary["eval"]
-        print(f"eval ({e['episodes_finished']} episodes, {'shielded' if e['shielded'] else 'unshielded'}): "
+        print(f"eval ({e['episodes_finished']} episodes on {len(evaluated)} checkpoint(s), "
+              f"{'shielded' if e['shielded'] else 'unshielded'}): "
               f"SR {e['success_rate']:.2f}  return {e['return_mean']:.2f}  col/1k {e['col_per_1k']:.2f}  "
               f"intervention {e['intervention_rate']:.2f}", file=sys.stderr)
     atomic_write_text(run.summary, json.dumps(summary, indent=2, default=_num) + "\n")
     print(json.dumps({"run_dir": str(run.root), "version": summary.get("version"),
                       "updates": summary.get("updates")}))
     return 0
+
+
+def save_evaluated_params(run: RunDir, evaluated: list[dict]) -> Path:
+    """The tree parameters the final evaluation ran, one group per checkpoint version, as a
+    compressed numpy archive (data only: ``numpy.load(allow_pickle=False)`` reads it), so a
+    table resting on this run can be re-evaluated without the checkpoints."""
+    arrays = {f"v{r['version']}/{k}": np.asarray(v) for r in evaluated for k, v in r["params"].items()}
+    tmp = run.evaluated_params.with_name(run.evaluated_params.name + ".tmp")
+    with open(tmp, "wb") as fh:
+        np.savez_compressed(fh, **arrays)
+    os.replace(tmp, run.evaluated_params)
+    return run.evaluated_params
 
 
 def run_ray(cfg_path: Path, placement: RayPlacement, **kw) -> int:

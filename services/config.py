@@ -164,6 +164,10 @@ class TrainConfig:
     params_rebroadcast_s: float = bounded(0.5, gt=0.0, le=3600.0)
     eval_episodes: int = bounded(4, ge=0, le=100_000, help="final deterministic deployment eval episodes")
     eval_max_steps: int = bounded(0, ge=0, le=10**6)       # 0 -> env default episode length
+    # The final evaluation runs on each of the last this many checkpoints (eval_episodes
+    # each) and reports their mean: one checkpoint's SR moves with where training happened
+    # to stop (docs/protocol/table1.toml uses 3). Needs checkpoint_keep >= it.
+    eval_checkpoints: int = bounded(1, ge=1, le=100)
     # Deployment probe during training: every this many updates the learner runs
     # the deterministic trees (+ exact QP when shielded) on a few held-out episodes
     # and logs deploy_sr & co. The stochastic training SR can hide a deterministic
@@ -205,6 +209,9 @@ class TrainConfig:
         if self.envs_per_actor * self.chunk_len > MAX_SAMPLES_PER_CHUNK:
             raise ValueError(f"envs_per_actor x chunk_len = {self.envs_per_actor * self.chunk_len} samples per chunk "
                              f"is over the {MAX_SAMPLES_PER_CHUNK} one chunk message may carry")
+        if self.checkpoint_keep and self.eval_checkpoints > self.checkpoint_keep:
+            raise ValueError(f"eval_checkpoints ({self.eval_checkpoints}) needs checkpoint_keep >= it "
+                             f"(got {self.checkpoint_keep}; 0 keeps all)")
         if self.actor.chaos_crash_prob > 0 and self.mode != "supervised":
             raise ValueError("actor.chaos_crash_prob needs --mode supervised (a crashed thread is not restarted)")
         if self.shields > self.actors:
