@@ -1,0 +1,71 @@
+"""sage/stats.py against hand computations and an independent stratified bootstrap."""
+import math
+
+import numpy as np
+import pytest
+
+from sage import stats
+
+
+def test_iqm_is_the_mean_of_the_middle_half():
+    assert stats.iqm([1, 2, 3, 4, 5, 6, 7, 8]) == pytest.approx(4.5)
+    assert stats.iqm([0, 0, 0, 0, 1, 1, 1, 100]) == pytest.approx(0.5)   # the outlier is trimmed
+
+
+def _hand_stratified_ci(groups, fn, n=20_000, seed=1, level=0.95):
+    rng = np.random.default_rng(seed)
+    stats_ = []
+    for _ in range(n):
+        stats_.append(fn(np.concatenate([g[rng.integers(0, g.size, g.size)] for g in groups])))
+    return np.quantile(stats_, [(1 - level) / 2, (1 + level) / 2])
+
+
+def test_stratified_ci_matches_an_independent_resampler():
+    rng = np.random.default_rng(0)
+    groups = [rng.normal(mu, 1.0, 6) for mu in (0.0, 2.0, 5.0)]
+    values = np.concatenate(groups)
+    strata = sum(([k] * 6 for k in range(3)), [])
+    for est, fn in (("mean", np.mean), ("iqm", stats.iqm)):
+        out = stats.aggregate_ci(values, strata, est)
+        hand = _hand_stratified_ci(groups, fn)
+        assert out["estimate"] == pytest.approx(fn(values))
+        assert out["ci"] == pytest.approx(hand, abs=0.08)
+        assert out["ci"][0] < out["estimate"] < out["ci"][1]
+    # stratified: the scenario means are not resampled away, so the CI is narrower than pooling
+    pooled = stats.aggregate_ci(values, [0] * 18, "mean")
+    assert np.diff(stats.aggregate_ci(values, strata)["ci"]) < np.diff(pooled["ci"])
+
+
+def test_ci_is_reproducible_and_nan_where_a_stratum_has_one_run():
+    a = stats.aggregate_ci([0.1, 0.5, 0.9, 0.2], ["x", "x", "y", "y"])
+    assert a == stats.aggregate_ci([0.1, 0.5, 0.9, 0.2], ["x", "x", "y", "y"])
+    assert all(math.isnan(v) for v in stats.aggregate_ci([0.1, 0.5, 0.9], ["x", "x", "y"])["ci"])
+    assert stats.aggregate_ci([1.0, 1.0, 0.0, 0.0], ["x", "x", "y", "y"])["ci"] == [0.5, 0.5]
+
+
+def test_probability_of_improvement():
+    hi, lo = [0.9, 0.8, 0.95], [0.1, 0.2, 0.3]
+    assert stats.probability_of_improvement(hi, "aaa", lo, "aaa")["estimate"] == 1.0
+    assert stats.probability_of_improvement(lo, "aaa", hi, "aaa")["estimate"] == 0.0
+    assert stats.probability_of_improvement(hi, "aaa", hi, "aaa")["estimate"] == pytest.approx(0.5)
+    # per scenario, then averaged: scenario a 1.0, scenario b 0.0 -> 0.5
+    out = stats.probability_of_improvement([1, 1, 0, 0], "aabb", [0, 0, 1, 1], "aabb")
+    assert out["estimate"] == 0.5 and out["scenarios"] == 2
+    # one pair of four ties, three wins: (3 + 0.5) / 4
+    assert stats.probability_of_improvement([1, 2], "aa", [1, 0], "aa")["estimate"] == pytest.approx(0.875)
+
+
+def test_runs_needed_and_verdicts():
+    # ((1.95996 + 0.84162) * 0.5 / 0.1)^2 = 196.2 -> 197 matched runs
+    assert stats.runs_needed(0.1, 0.5) == 197
+    assert stats.runs_needed(-0.1, 0.5) == 197
+    assert stats.runs_needed(0.1, 0.0) is None and stats.runs_needed(0.0, 0.5) is None
+    assert stats.verdict([0.01, 0.2], +1) == "confirmed" and stats.verdict([0.01, 0.2], -1) == "refuted"
+    assert stats.verdict([-0.1, 0.2], +1) == "undecided" and stats.verdict([math.nan, 1], +1) == "undecided"
+
+
+def test_paired_difference_reports_the_spread():
+    pairs = {("a", 0): (1.0, 0.0), ("a", 1): (0.0, 0.0), ("b", 0): (1.0, 1.0), ("b", 1): (1.0, 0.0)}
+    out = stats.paired_difference_ci(pairs)
+    assert out["estimate"] == 0.5 and out["runs"] == 4
+    assert out["sd"] == pytest.approx(np.std([1, 0, 0, 1], ddof=1))
