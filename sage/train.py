@@ -244,13 +244,26 @@ def cmd_train(args) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     cfg = config_from_args(args)
     mode = train_mode(args, cfg)
+    placement = ray_placement(args) if mode == "ray" else None
+    code, summary = train_run(cfg, mode, progress=not args.quiet, placement=placement)
+    if summary is None:
+        return code
+    print(json.dumps({"run_dir": str(cfg.run_dir), "version": summary.get("version"),
+                      "updates": summary.get("updates")}))
+    return code
+
+
+def train_run(cfg: TrainConfig, mode: str = "inprocess", progress: bool = True,
+              placement: RayPlacement | None = None) -> tuple[int, dict | None]:
+    """Train the resolved ``cfg`` (``sage train``'s work, also ``sage.api.train``'s): write the
+    run directory, run the services where ``mode`` says, evaluate and write ``summary.json``.
+    Returns (exit code, summary; None when nothing was trained)."""
     run = RunDir(cfg.run_dir)
     clash = _resume_clash(run, cfg)
     if clash:
         print(f"sage train: {run.root} holds a run of {clash}; the learner would resume its checkpoints. "
               "Use another --run-dir or --run-id (or the run's own config to resume it).", file=sys.stderr)
-        return 2
-    placement = ray_placement(args) if mode == "ray" else None
+        return 2, None
     if placement is not None:
         join_cluster(placement, cfg)
     cfg_path = save_run_config(cfg, run)
@@ -263,14 +276,14 @@ def cmd_train(args) -> int:
         code = int(run_supervised(str(cfg_path)) or 0) if mode == "supervised" else \
             run_ray(cfg_path, placement)
         if code:
-            return code
+            return code, None
         try:
             _, params, version = load_run(run.root)
         except FileNotFoundError:
             params, version = None, None
         summary = {"mode": mode, "version": version, **last_progress(run)}
     else:
-        out = run_inprocess(cfg, progress=not args.quiet)
+        out = run_inprocess(cfg, progress=progress)
         params = out.pop("params")
         out.pop("status", None)
         summary = {"mode": "inprocess", **out}
@@ -285,9 +298,7 @@ def cmd_train(args) -> int:
               f"SR {e['success_rate']:.2f}  return {e['return_mean']:.2f}  col/1k {e['col_per_1k']:.2f}  "
               f"intervention {e['intervention_rate']:.2f}", file=sys.stderr)
     atomic_write_text(run.summary, json.dumps(summary, indent=2, default=_num) + "\n")
-    print(json.dumps({"run_dir": str(run.root), "version": summary.get("version"),
-                      "updates": summary.get("updates")}))
-    return 0
+    return 0, summary
 
 
 def save_evaluated_params(run: RunDir, evaluated: list[dict]) -> Path:
