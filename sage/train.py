@@ -18,8 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common.algos.registry import ALL_METHODS, method_spec
-from common.env.scenarios import SCENARIOS
+from common.algos.registry import method_spec
 from common.checkpoint import list_checkpoints, load_checkpoint
 from common.evaluation.deployment import evaluate_policy
 from common.policy.tree_torch import policy_params_from_checkpoint
@@ -29,7 +28,7 @@ from deploy.ray_run import ClusterError, RayPlacement, run_on_ray
 from deploy.sage_run import METRICS_OFFSETS, default_actor_count, parse_ids, run_supervised
 from deploy.supervisor import EXIT_GAVE_UP, SupervisorConfig
 from common.config_fields import check_range, field_help, parse_value
-from sage.errors import UsageError, nonneg_int, one_line, port, positive_float, positive_int, user_input
+from sage.errors import UsageError, nonneg_int, one_line, port, positive_int, user_input
 from sage.runs import last_progress, load_run, read_config
 from services.config import FINAL_EVAL_SEED, UNLIMITED_UPDATES, TrainConfig
 from services.launcher import ROLES, run_inprocess
@@ -390,15 +389,7 @@ def add_up_arguments(p: argparse.ArgumentParser) -> None:
                         "(raise it for chaos runs, actor.chaos_crash_prob); with --ray: Ray's max_restarts "
                         "per service over the whole run")
     add_ray_arguments(p, "the router, shields, learner and actors of this run as Ray actors")
-    fresh = p.add_argument_group("fresh run (without --config)")
-    fresh.add_argument("--scenario", default=None, choices=sorted(SCENARIOS))
-    fresh.add_argument("--method", default=None, choices=ALL_METHODS)
-    fresh.add_argument("--updates", type=positive_int, default=None)
-    fresh.add_argument("--minutes", type=positive_float, default=None)
-    fresh.add_argument("--envs-per-actor", type=positive_int, default=None)
-    fresh.add_argument("--seed", type=nonneg_int, default=None)
-    fresh.add_argument("--run-id", default=None)
-    fresh.add_argument("--run-dir", default=None)
+    add_config_flags(p.add_argument_group("the run's config (over --config, or a fresh one)"), UP_FLAGS)
 
 
 def up_config_from_args(args) -> Path:
@@ -415,11 +406,7 @@ def up_config(args) -> TrainConfig:
 
 
 def _apply_up_args(cfg: TrainConfig, args) -> TrainConfig:
-    for name in ("actors", "shields", "scenario", "method", "updates", "minutes", "envs_per_actor", "seed", "run_id",
-                 "run_dir"):
-        value = getattr(args, name)
-        if value is not None:
-            setattr(cfg, name, value)
+    apply_config_flags(cfg, args, ("actors", "shields") + UP_FLAGS)
     if args.connect:
         cfg.transport.connect = list(args.connect)
         cfg.transport.mode = "client"  # reach the other services through the router
