@@ -20,7 +20,7 @@ import argparse
 import os
 import sys
 
-from sage import audit_commands, compare, env_commands, evaluate, report, suite, train, watch
+from sage import audit_commands, compare, env_commands, evaluate, instrument, report, suite, train, watch
 from sage.errors import UsageError
 from sage.bench import env as bench_env
 from sage.bench import learner as bench_learner
@@ -33,6 +33,7 @@ COMMAND_MODULES = [
     train,            # sage train, sage up
     evaluate,         # sage eval
     suite,            # sage suite
+    instrument,       # sage instrument
     report,           # sage report
     compare,          # sage compare
     env_commands,     # sage env render
