@@ -29,6 +29,15 @@ Schema (unknown keys are refused, so a typo cannot silently drop a setting)::
     settings = { "algo.split_k" = 1 }
     [calibration]                # the method-blind scripted arm (not trained)
     command = "sage env calibrate --json"
+    [pilot]                      # `sage suite --protocol FILE --pilot`: the subset that sets the budgets
+    arms = ["happo", "happo_cbf"]
+    scenarios = ["narrow_gate", "double_gate", "l_corridor"]
+    seeds = [0, 1, 2]
+    updates = 300
+
+The pilot shares every setting of the protocol's arms; only its arms, scenarios,
+seeds and budget are its own, so the budgets it sets are for the very runs the
+campaign makes.
 """
 from __future__ import annotations
 
@@ -86,15 +95,16 @@ def _scenario_list(value, where: str) -> list[str]:
     return out
 
 
-def load_protocol(path: str | Path, out_dir: str | None = None) -> Protocol:
-    """The suite a protocol file describes; a ``ValueError`` naming the first bad entry."""
+def load_protocol(path: str | Path, out_dir: str | None = None, pilot: bool = False) -> Protocol:
+    """The suite a protocol file describes (its ``[pilot]`` subset with ``pilot``); a
+    ``ValueError`` naming the first bad entry."""
     p = Path(path)
     raw_bytes = p.read_bytes()
     try:
         doc = tomllib.loads(raw_bytes.decode())
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ValueError(f"{p}: not a TOML protocol ({exc})") from None
-    unknown = set(doc) - {"protocol", "settings", "arms", "calibration"}
+    unknown = set(doc) - {"protocol", "settings", "arms", "calibration", "pilot"}
     if unknown:
         raise ValueError(f"{p}: unknown sections {sorted(unknown)}")
     head = doc.get("protocol")
@@ -139,5 +149,31 @@ def load_protocol(path: str | Path, out_dir: str | None = None) -> Protocol:
         out_dir=out_dir or f"results/{head['name']}", protocol=str(p),
         protocol_sha256=hashlib.sha256(raw_bytes).hexdigest(),
     )
+    if pilot:
+        _restrict_to_pilot(suite, doc.get("pilot"), p, out_dir)
     return Protocol(path=str(p), sha256=suite.protocol_sha256, name=str(head["name"]), suite=suite,
                     extension_arms=extensions, calibration=dict(doc.get("calibration", {})), text=doc)
+
+
+def _restrict_to_pilot(suite: SuiteConfig, pilot, p: Path, out_dir: str | None) -> None:
+    if not isinstance(pilot, dict):
+        raise ValueError(f"{p}: needs a [pilot] table for --pilot")
+    bad = set(pilot) - {"arms", "scenarios", "seeds", "updates"}
+    if bad or not {"arms", "scenarios", "seeds", "updates"} <= set(pilot):
+        raise ValueError(f"{p}: [pilot] takes arms, scenarios, seeds and updates"
+                         + (f" (unknown {sorted(bad)})" if bad else ""))
+    names = {a.name for a in suite.arms}
+    unknown = [a for a in pilot["arms"] if a not in names]
+    if unknown:
+        raise ValueError(f"{p}: [pilot] arms {unknown} are not arms of the protocol")
+    suite.arms = [a for a in suite.arms if a.name in pilot["arms"]]
+    suite.methods = [a.method for a in suite.arms]
+    suite.scenarios = _scenario_list(pilot["scenarios"], f"{p}: [pilot] scenarios")
+    seeds = pilot["seeds"]
+    if not isinstance(seeds, list) or not seeds or not all(isinstance(k, int) and k >= 0 for k in seeds):
+        raise ValueError(f"{p}: [pilot] seeds must be a non-empty list of integers >= 0")
+    suite.seeds = list(seeds)
+    if not isinstance(pilot["updates"], int) or pilot["updates"] < 1:
+        raise ValueError(f"{p}: [pilot] updates must be an integer >= 1")
+    suite.updates_per_run, suite.updates_by_scenario = pilot["updates"], {}
+    suite.out_dir = out_dir or suite.out_dir + "_pilot"

@@ -439,6 +439,8 @@ def register(commands, bench) -> None:
     p.add_argument("--protocol", default=None, metavar="FILE",
                    help="run the campaign a protocol file pins (e.g. docs/protocol/table1.toml): arms, scenarios, "
                         "seeds, budgets, evaluation; the experiment flags below are then refused")
+    p.add_argument("--pilot", action="store_true",
+                   help="with --protocol: run its [pilot] subset (the arms and runs that set the budgets)")
     p.add_argument("--dry-run", action="store_true", help="list the runs (and their config fingerprints), run nothing")
     p.add_argument("--methods", default=None, help=f"comma list (default {','.join(d.methods)})")
     p.add_argument("--scenarios", default=None, help="comma list, a family (LCP/STR/CCN) or 'all' (default)")
@@ -496,12 +498,14 @@ def suite_config_from_args(args: argparse.Namespace) -> SuiteConfig:
         from sage.protocol import load_protocol   # tomllib only where a protocol is read
 
         with user_input(f"--protocol {args.protocol}"):
-            cfg = load_protocol(args.protocol, out_dir=args.out).suite
+            cfg = load_protocol(args.protocol, out_dir=args.out, pilot=args.pilot).suite
             plan(cfg)
         for arm in cfg.arm_list():
             check_train_overrides(cfg.train_overrides + list(arm.settings), f"--protocol {args.protocol} "
                                                                             f"arm {arm.name}")
         return cfg
+    if args.pilot:
+        raise UsageError("--pilot runs a protocol's [pilot] subset: give --protocol FILE")
     d = SuiteConfig()
     with user_input():
         cfg = SuiteConfig(

@@ -90,3 +90,16 @@ def test_resume_keeps_results_of_the_same_config_and_refuses_another(tmp_path):
     _fake_result(cfg, specs[1], "0" * 16)   # a result without this config's fingerprint
     with pytest.raises(ValueError, match="1 result"):
         check_resume(cfg, specs)
+
+
+def test_pilot_is_the_protocols_own_runs_restricted(tmp_path):
+    full = load_protocol(TABLE1, out_dir=str(tmp_path))
+    pilot = load_protocol(TABLE1, pilot=True)
+    assert {a.name for a in pilot.suite.arm_list()} == {"happo", "happo_cbf"}
+    assert len(plan(pilot.suite)) == 2 * len(pilot.suite.scenarios) * len(pilot.suite.seeds) >= 18
+    assert pilot.suite.out_dir.endswith("_pilot") and pilot.sha256 == full.sha256
+    spec = plan(pilot.suite)[0]
+    a = run_config(pilot.suite, spec, tmp_path / "a")
+    b = run_config(full.suite, spec, tmp_path / "a")
+    b.updates = a.updates
+    assert a.fingerprint() == b.fingerprint()   # the same run as the campaign's, but for the budget
