@@ -4,6 +4,7 @@ defaults). The team's physical layout (payload, grasps, carrier size) is in
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from common.env.scenarios import SCENARIOS
@@ -62,6 +63,13 @@ class EnvConfig:
     # rows hold at t=0 and no run starts in contact); 1.0 is the original box.
     start_spread: float = 1.5
     start_min_clearance: float = 0.1     # m
+    # Layout per episode (common/env/scenarios.py, each scenario's builder docstring): every layout
+    # parameter (gate positions and openings, corridor widths and turn points, obstacle offsets,
+    # start and goal marks) uniform in nominal +- layout_spread x its stated half-range, drawn from
+    # the env's layout stream (train or eval, common/env/scene.py). 1.0: the stated spreads (what
+    # rooms of each kind vary by; calibrated with the scripted controller, docs/protocol/calibration.md);
+    # 0.0: the nominal layout every episode (the scenarios before issue 29). Applied only when randomize.
+    layout_spread: float = 1.0
     # Payload mass per episode, uniform (kg): the 10 kg board (layout.PAYLOAD_MASS) with a +-10%
     # material tolerance (plywood/MDF density) plus 0-1 kg of fixtures (grasp handles, clamps,
     # markers) -> 9-12 kg. Set exactly per env (each env gets its own MjModel copy whose payload
@@ -110,6 +118,8 @@ class EnvConfig:
             raise ValueError("human_delay must be >= 0")
         if self.safety_rows not in ("paper", "grasp"):
             raise ValueError(f"safety_rows must be 'paper' or 'grasp', got {self.safety_rows!r}")
+        if not (math.isfinite(self.layout_spread) and 0 <= self.layout_spread <= 2):
+            raise ValueError(f"layout_spread must be in [0, 2] (a scale of the stated spreads), got {self.layout_spread!r}")
         if self.start_spread < 0 or self.start_min_clearance < 0:
             raise ValueError("start_spread and start_min_clearance must be >= 0")
         lo, hi = self.payload_mass_range
