@@ -100,6 +100,13 @@ def set_model_walls(m: mujoco.MjModel, walls, wall_bodies, wall_geoms):
     m.body_quat[wall_bodies] = 0.0
     m.body_quat[wall_bodies, 0] = np.cos(walls[:, 4] / 2)
     m.body_quat[wall_bodies, 3] = np.sin(walls[:, 4] / 2)
+    # a massless static body's inertial frame, as the compiler sets it: its body pose, and the
+    # kinematics shortcut flag "same rotation as the body" (mjSAMEFRAME_BODYROT) only when unrotated
+    m.body_ipos[wall_bodies] = m.body_pos[wall_bodies]
+    m.body_iquat[wall_bodies] = m.body_quat[wall_bodies]
+    unrotated = np.abs(m.body_quat[wall_bodies] - [1.0, 0.0, 0.0, 0.0]).max(axis=1) < 1e-14
+    m.body_sameframe[wall_bodies] = np.where(unrotated, mujoco.mjtSameFrame.mjSAMEFRAME_BODYROT,
+                                             mujoco.mjtSameFrame.mjSAMEFRAME_NONE)
     m.geom_size[wall_geoms, 0] = walls[:, 2]
     m.geom_size[wall_geoms, 1] = walls[:, 3]
     m.geom_aabb[wall_geoms, 3] = walls[:, 2]    # [centre (3), half-sizes (3)] in the geom frame
