@@ -258,3 +258,37 @@ def test_clean_scripted_controller_solves_drawn_layouts(name):
 def test_clean_scripted_controller_solves_many_drawn_layouts(name):
     eps = _scripted_episodes(name, 16, seed=22, purpose="train")
     assert all(e["success"] and not e["drop"] for e in eps), [e for e in eps if not e["success"]]
+
+
+# ----------------------------------------------------------------------------- calibration, render
+
+def test_calibration_arms_report_separate_outcomes_and_the_shield(capsys):
+    """The calibration's four arms on a few held-out episodes: outcomes partition the episodes,
+    the shield's figures exist exactly for the shielded arms, the bias changes the outcome, and
+    the CLI prints one row per arm."""
+    from common.evaluation.calibration import ARMS, run_arm
+    from sage.cli import main
+
+    cfg = EnvConfig("narrow_gate")
+    res = {arm: run_arm(cfg, 4, seed=1, arm=arm) for arm in ARMS}
+    for arm, r in res.items():
+        assert r["episodes"] == 4
+        assert r["success_rate"] + r["drop_rate"] + r["truncation_rate"] == pytest.approx(1.0)
+        assert (r["intervention_rate"] is None) == (not arm.endswith("+shield"))
+    assert res["clean"]["success_rate"] == 1.0 and res["clean+shield"]["infeasible_steps"] == 0
+    assert res["biased"]["collision_episode_rate"] > 0   # aimed 0.2 m off the route it scrapes unshielded
+    assert res["biased+shield"]["col_per_1k_pooled"] == 0 and res["biased+shield"]["intervention_rate"] > 0
+    with pytest.raises(ValueError):
+        run_arm(cfg, 1, seed=0, arm="noisy")
+    assert main(["env", "calibrate", "--scenario", "narrow_gate", "--episodes", "2"]) == 0
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| narrow_gate")]
+    assert [r.split("|")[2].strip() for r in rows] == list(ARMS)
+
+
+def test_render_overlays_drawn_layouts(tmp_path):
+    from common.env.render import drawn_layouts, render
+
+    lays = drawn_layouts("maze", 4, seed=3)
+    assert len({_vector(lay).tobytes() for lay in lays}) == 4
+    rec = render(str(tmp_path / "m.png"), ["maze"], seed=3, layouts=4)
+    assert rec["maze"]["success"] and (tmp_path / "m.png").stat().st_size > 1000
