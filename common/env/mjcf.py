@@ -23,7 +23,7 @@ from common.spec import N_CARRIERS
 
 
 def _f(*xs) -> str:
-    return " ".join(f"{x:.17g}" for x in xs)
+    return " ".join(repr(float(x)) for x in xs)   # shortest exact form: the model holds the very floats
 
 
 def wall_body(k: int, wall) -> str:
@@ -32,7 +32,7 @@ def wall_body(k: int, wall) -> str:
     builds once), so that a layout drawn per episode moves and resizes it in the compiled model
     (``physics.set_model_walls``) exactly as compiling this MJCF with the drawn walls would."""
     cx, cy, hx, hy, yaw = (float(v) for v in wall)
-    return (f'    <body name="wall{k}" pos="{_f(cx, cy, WALL_HEIGHT / 2)}" euler="0 0 {yaw:.17g}">'
+    return (f'    <body name="wall{k}" pos="{_f(cx, cy, WALL_HEIGHT / 2)}" euler="0 0 {_f(yaw)}">'
             f'<geom name="wall{k}" type="box" size="{_f(hx, hy, WALL_HEIGHT / 2)}" class="wall"/></body>')
 
 

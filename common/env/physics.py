@@ -94,27 +94,24 @@ def set_model_walls(m: mujoco.MjModel, walls, wall_bodies, wall_geoms):
     sphere, the body's one-node bounding-volume tree), so that ``m`` is the model compiled with these
     walls (tested field by field)."""
     walls = np.asarray(walls, dtype=np.float64)
-    half_z = m.geom_size[wall_geoms, 2]
-    m.body_pos[wall_bodies, 0] = walls[:, 0]
-    m.body_pos[wall_bodies, 1] = walls[:, 1]
-    m.body_quat[wall_bodies] = 0.0
-    m.body_quat[wall_bodies, 0] = np.cos(walls[:, 4] / 2)
-    m.body_quat[wall_bodies, 3] = np.sin(walls[:, 4] / 2)
+    half = walls[:, 2:4]
+    quat = np.zeros((len(walls), 4))
+    quat[:, 0] = np.cos(walls[:, 4] / 2)
+    quat[:, 3] = np.sin(walls[:, 4] / 2)
+    m.body_pos[wall_bodies, :2] = walls[:, :2]
+    m.body_quat[wall_bodies] = quat
     # a massless static body's inertial frame, as the compiler sets it: its body pose, and the
     # kinematics shortcut flag "same rotation as the body" (mjSAMEFRAME_BODYROT) only when unrotated
     m.body_ipos[wall_bodies] = m.body_pos[wall_bodies]
-    m.body_iquat[wall_bodies] = m.body_quat[wall_bodies]
-    unrotated = np.abs(m.body_quat[wall_bodies] - [1.0, 0.0, 0.0, 0.0]).max(axis=1) < 1e-14
-    m.body_sameframe[wall_bodies] = np.where(unrotated, mujoco.mjtSameFrame.mjSAMEFRAME_BODYROT,
-                                             mujoco.mjtSameFrame.mjSAMEFRAME_NONE)
-    m.geom_size[wall_geoms, 0] = walls[:, 2]
-    m.geom_size[wall_geoms, 1] = walls[:, 3]
-    m.geom_aabb[wall_geoms, 3] = walls[:, 2]    # [centre (3), half-sizes (3)] in the geom frame
-    m.geom_aabb[wall_geoms, 4] = walls[:, 3]
-    m.geom_rbound[wall_geoms] = np.sqrt(walls[:, 2] ** 2 + walls[:, 3] ** 2 + half_z ** 2)
-    bvh = m.body_bvhadr[wall_bodies]            # one node per wall body: its geom's box
-    m.bvh_aabb[bvh, 3] = walls[:, 2]
-    m.bvh_aabb[bvh, 4] = walls[:, 3]
+    m.body_iquat[wall_bodies] = quat
+    unrotated = np.abs(quat - [1.0, 0.0, 0.0, 0.0]).max(axis=1) < 1e-14
+    m.body_sameframe[wall_bodies] = np.where(unrotated, int(mujoco.mjtSameFrame.mjSAMEFRAME_BODYROT),
+                                             int(mujoco.mjtSameFrame.mjSAMEFRAME_NONE))
+    size = m.geom_size
+    size[wall_geoms, :2] = half
+    m.geom_aabb[wall_geoms, 3:5] = half    # [centre (3), half-sizes (3)] in the geom frame
+    m.geom_rbound[wall_geoms] = np.sqrt((size[wall_geoms] ** 2).sum(axis=1))
+    m.bvh_aabb[m.body_bvhadr[wall_bodies], 3:5] = half   # one node per wall body: its geom's box
 
 
 def tracker_targets_reference(carrier_pose, ctrl, actions, cfg: EnvConfig) -> np.ndarray:
@@ -293,13 +290,16 @@ class TransportPhysics:
             raise ValueError(f"walls must be finite [{len(self.nominal_walls)},5] boxes with positive half-sizes")
         self._models_changed = True
         self._env_mass[k] = mass
+        moved = not np.array_equal(walls, self._env_walls[k])
         self._env_walls[k] = walls
         if mass == PAYLOAD_MASS and np.array_equal(walls, self.nominal_walls):
             self.models[k] = self.model
             return
         if self.models[k] is self.model:
             self.models[k] = copy.copy(self.model)   # MjModel copies are deep
-        set_model_walls(self.models[k], walls, self.wall_bodies, self.wall_geoms)
+            moved = True
+        if moved:   # the same layout again (layout_spread=0) keeps its walls
+            set_model_walls(self.models[k], walls, self.wall_bodies, self.wall_geoms)
         set_model_payload_mass(self.models[k], self.model, self.payload_body, mass, self._scratch)
 
     def _sync_models(self):

@@ -525,7 +525,9 @@ class SafetyModel:
         walls = np.asarray(walls, dtype=np.float64)
         if self.tables.shape[0] != self.num_envs or walls.shape != (self.tables.shape[2], 5):
             raise ValueError(f"set_walls needs per-env walls [K,W,5] at construction and [W,5] here, got {walls.shape}")
-        self.tables[k] = wall_table(_check_walls(walls, 1)[0])
+        if not np.isfinite(walls).all() or (walls[:, 2:4] < 0).any():
+            raise ValueError("walls must be finite with non-negative half-sizes")
+        self.tables[k] = wall_table(walls)
 
     def rows(self, carrier_xy, carrier_yaw, payload_xy, payload_yaw, payload_points_local, grasp_local, pair_rest):
         K, M = self.num_envs, int(self.cfg.max_rows)

@@ -105,13 +105,14 @@ def draw_layout(spec: ScenarioSpec, rng: np.random.Generator | None, spread: flo
 # --- wall builders -----------------------------------------------------------------
 
 def _segment_wall(p0, p1, extend0=0.0, extend1=0.0, t=WALL_T, side=0.0):
-    """Box along segment p0->p1, lengthened by extend at each end, shifted sideways by side."""
-    p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
-    u = (p1 - p0) / np.linalg.norm(p1 - p0)
-    n = np.array([-u[1], u[0]])
-    a, b = p0 - extend0 * u + side * n, p1 + extend1 * u + side * n
-    c = 0.5 * (a + b)
-    return (float(c[0]), float(c[1]), float(0.5 * np.linalg.norm(b - a)), t / 2, math.atan2(u[1], u[0]))
+    """Box along segment p0->p1, lengthened by extend at each end, shifted sideways by side.
+    (Scalar arithmetic: layouts are built at every episode reset.)"""
+    x0, y0, x1, y1 = float(p0[0]), float(p0[1]), float(p1[0]), float(p1[1])
+    length = math.hypot(x1 - x0, y1 - y0)
+    ux, uy = (x1 - x0) / length, (y1 - y0) / length
+    cx = 0.5 * (x0 + x1) + 0.5 * (extend1 - extend0) * ux - side * uy
+    cy = 0.5 * (y0 + y1) + 0.5 * (extend1 - extend0) * uy + side * ux
+    return (cx, cy, 0.5 * (length + extend0 + extend1), t / 2, math.atan2(uy, ux))
 
 
 def _rect(x0, x1, y0, y1):
@@ -136,35 +137,41 @@ def _gate(x, y0, y1, centre, opening, t=WALL_T):
 
 def _corridor(centerline, width):
     """Walls of a polyline corridor with inner faces at +-width/2, closed at both ends."""
-    pts = np.asarray(centerline, float)
-    half, t = width / 2, WALL_T
+    pts = [(float(x), float(y)) for x, y in centerline]
+    half, t, n_pts = width / 2, WALL_T, len(pts)
+    dirs = []
+    for (xa, ya), (xb, yb) in zip(pts[:-1], pts[1:]):
+        d = math.hypot(xb - xa, yb - ya)
+        dirs.append(((xb - xa) / d, (yb - ya) / d))
     walls = []
-    dirs = [(pts[k + 1] - pts[k]) / np.linalg.norm(pts[k + 1] - pts[k]) for k in range(len(pts) - 1)]
     for sign in (+1.0, -1.0):  # +1 left wall, -1 right wall
         # miter offset polyline of this side (inner face), then boxes outside it
         off = []
-        for k in range(len(pts)):
-            if k == 0 or k == len(pts) - 1:
-                u = dirs[0] if k == 0 else dirs[-1]
-                off.append(pts[k] + sign * half * np.array([-u[1], u[0]]))
+        for k, (x, y) in enumerate(pts):
+            if k == 0 or k == n_pts - 1:
+                ux, uy = dirs[0] if k == 0 else dirs[-1]
+                off.append((x - sign * half * uy, y + sign * half * ux))
                 continue
-            u0, u1 = dirs[k - 1], dirs[k]
-            n0, n1 = np.array([-u0[1], u0[0]]), np.array([-u1[1], u1[0]])
-            m = n0 + n1
-            off.append(pts[k] + sign * half * m / np.dot(m, n0))
-        for k in range(len(pts) - 1):
+            (u0x, u0y), (u1x, u1y) = dirs[k - 1], dirs[k]
+            mx, my = -u0y - u1y, u0x + u1x              # n0 + n1 (left normals)
+            scale = sign * half / (mx * -u0y + my * u0x)  # / (m . n0)
+            off.append((x + scale * mx, y + scale * my))
+
+        def outer(j):
             # an outer corner for this side needs the wall lengthened to close the joint
-            def outer(j):
-                if j == 0 or j == len(pts) - 1:
-                    return True
-                cross = dirs[j - 1][0] * dirs[j][1] - dirs[j - 1][1] * dirs[j][0]
-                return sign * cross < 0  # right turn is outer for the left wall
+            if j == 0 or j == n_pts - 1:
+                return True
+            cross = dirs[j - 1][0] * dirs[j][1] - dirs[j - 1][1] * dirs[j][0]
+            return sign * cross < 0  # right turn is outer for the left wall
+
+        for k in range(n_pts - 1):
             walls.append(_segment_wall(off[k], off[k + 1], t if outer(k) else 0.0,
                                        t if outer(k + 1) else 0.0, side=sign * t / 2))
-    for k, u in ((0, -dirs[0]), (len(pts) - 1, dirs[-1])):  # end caps
-        n = np.array([-u[1], u[0]])
-        c = pts[k] + u * t / 2
-        walls.append(_segment_wall(c - n * (half + t), c + n * (half + t)))
+    for k, (ux, uy) in ((0, (-dirs[0][0], -dirs[0][1])), (n_pts - 1, dirs[-1])):  # end caps
+        nx, ny = -uy, ux
+        cx, cy = pts[k][0] + ux * t / 2, pts[k][1] + uy * t / 2
+        r = half + t
+        walls.append(_segment_wall((cx - nx * r, cy - ny * r), (cx + nx * r, cy + ny * r)))
     return tuple(walls)
 
 
