@@ -231,12 +231,17 @@ class TopDownView:
 
         self.w, self.h = width, height
         x0, x1, y0, y1 = spec.bounds
+        walls = spec.walls if walls is None else walls
+        if len(walls):   # a drawn layout may reach past the nominal plot extent
+            pts = np.concatenate([_box_corners(*w) for w in walls])
+            x0, y0 = np.minimum([x0, y0], pts.min(axis=0) - 0.1)
+            x1, y1 = np.maximum([x1, y1], pts.max(axis=0) + 0.1)
         self.scale = min((width - 8) / (x1 - x0), (height - 8) / (y1 - y0))
         self.origin = np.array([0.5 * (width - self.scale * (x1 + x0)), 0.5 * (height + self.scale * (y1 + y0))])
         # walls and route never move: drawn once
         self.background = Image.new("RGB", (width, height), FLOOR)
         draw = ImageDraw.Draw(self.background)
-        for wall in (spec.walls if walls is None else walls):
+        for wall in walls:
             draw.polygon([tuple(p) for p in self.px(_box_corners(*wall))], fill=WALL)
         draw.line([tuple(p) for p in self.px(route_points)], fill=ROUTE, width=1)
 
