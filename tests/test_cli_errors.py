@@ -176,6 +176,12 @@ BAD = [
     ("env render --out {T}/x.xyz", "usage", "x.xyz"),
     ("env render --out {T}/empty_dir", "usage", "empty_dir"),
     ("env render --out {T}/a_file/x.png", "usage", "a_file"),
+    ("env render --layouts 0", "argparse", "--layouts"),
+    # sage env calibrate
+    ("env calibrate --episodes 0", "argparse", "--episodes"),
+    ("env calibrate --layout-spread 3", "argparse", "--layout-spread"),
+    ("env calibrate --aim-offset nan", "argparse", "--aim-offset"),
+    ("env calibrate --scenario bogus", "argparse", "bogus"),
     # sage tree
     ("tree show {T}/missing.pt", "usage", "missing.pt"),
     ("tree show {T}/corrupt.pt", "usage", "corrupt.pt"),
@@ -273,7 +279,7 @@ def test_enough_bad_invocations_over_every_command():
     assert len(BAD) >= 30
     commands = {c.split()[0] if c.split()[0] not in ("bench", "env", "tree") else " ".join(c.split()[:2])
                 for c, _, _ in BAD}
-    for name in ("train", "up", "eval", "suite", "report", "env render", "tree show", "trace", "audit",
+    for name in ("train", "up", "eval", "suite", "report", "env render", "env calibrate", "tree show", "trace", "audit",
                  "export-bundle", "bench qp", "bench env", "bench scripted", "bench learner", "bench system"):
         assert name in commands, name
 

@@ -42,12 +42,14 @@ def _recorded_envs(name, steps=(0, 3, 9, 20), seed=0, **kw):
 
 
 def _random_state(env, rng, spread):
-    """Put every env of ``env.phys`` at a random pose near the route (formation jittered by
-    ``spread`` m, random velocities and tilt), as state rows of the batch."""
-    phys, route = env.phys, env.route
-    i = rng.integers(0, len(route.s), K)
-    xy = route.points[i] + rng.normal(0.0, 0.5, (K, 2))
-    yaw = route.heading[i] + rng.normal(0.0, 0.5, K)
+    """Put every env of ``env.phys`` at a random pose near its own route (after a reset, which draws
+    every env's layout; formation jittered by ``spread`` m, random velocities and tilt), as state
+    rows of the batch."""
+    env.reset()
+    phys, routes = env.phys, env.routes
+    i = np.array([rng.integers(0, len(r.s)) for r in routes])
+    xy = np.array([r.points[j] for r, j in zip(routes, i)]) + rng.normal(0.0, 0.5, (K, 2))
+    yaw = np.array([r.heading[j] for r, j in zip(routes, i)]) + rng.normal(0.0, 0.5, K)
     carriers = np.empty((K, 3, 3))
     c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
     carriers[..., 0] = xy[:, None, 0] + c * GRASP_LOCAL[:, 0] - s * GRASP_LOCAL[:, 1]
@@ -61,8 +63,8 @@ def _random_state(env, rng, spread):
     phys.qpos[:, a + 3:a + 7] = quat / np.linalg.norm(quat, axis=1, keepdims=True)
     phys.qvel[:] = rng.normal(0.0, 0.3, phys.qvel.shape)
     phys.contact[:] = rng.random(K) < 0.5
-    env.s_prev[:] = route.s[i] + rng.normal(0.0, 0.3, K)
-    env.goal_s[:] = rng.uniform(0.0, route.length, K)
+    env.s_prev[:] = np.array([r.s[j] for r, j in zip(routes, i)]) + rng.normal(0.0, 0.3, K)
+    env.goal_s[:] = rng.uniform(0.0, [r.length for r in routes])
 
 
 def _assert_snapshots_equal(a: Snapshot, b: Snapshot):
@@ -77,7 +79,7 @@ def _assert_snapshots_equal(a: Snapshot, b: Snapshot):
 def _check_snapshot_and_observe(env, rng, envs):
     """snapshot / observe of rows ``envs`` equal their references (other rows untouched)."""
     fast, ref = Snapshot.empty(K), Snapshot.empty(K)
-    args = (env.phys, env.route, env.walls, env.s_prev, env.goal_s, env.cfg)
+    args = (env.phys, env.scene, env.s_prev, env.goal_s, env.cfg)
     observations.snapshot(*args, fast, envs)
     observations.snapshot_reference(*args, ref, envs)
     _assert_snapshots_equal(fast, ref)
@@ -86,7 +88,7 @@ def _check_snapshot_and_observe(env, rng, envs):
     outs = []
     for fn in (observations.observe, observations.observe_reference):
         obs, state = np.full((K, 3, OBS_DIM), 7.0, np.float32), np.full((K, STATE_DIM), 7.0, np.float32)
-        fn(fast, env.walls, goal_xy, goal_yaw, progress, time_left, env.cfg, envs, obs, state)
+        fn(fast, env.scene, goal_xy, goal_yaw, progress, time_left, env.cfg, envs, obs, state)
         outs.append((obs, state))
     for a, b in zip(*outs):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)   # float32: one unit in the last place
@@ -217,18 +219,19 @@ def test_tracker_targets_and_reset_match_reference(seed):
 @given(st.sampled_from(sorted(SCENARIOS)), st.integers(0, 2**31))
 def test_episode_placement_and_start_clearance_match_reference(name, seed):
     rng = np.random.default_rng(seed)
-    fast, ref = _env(name), _env(name)
+    fast, ref = _env(name, seed=seed % 7), _env(name, seed=seed % 7)
     start = rng.normal(0.0, 1.0, (K, 3)) + [5.0, 0.0, 0.0]
     goal_s = rng.uniform(-1.0, Route(SCENARIOS[name].route).length + 1.0, K)
     envs = np.array([0, 2, 3])
     for env in (fast, ref):
+        env.reset()   # every env in a layout of its own
         env._start[:], env.goal_s[:] = start, goal_s
     np.testing.assert_allclose(fast._place_episodes(envs), ref._place_episodes_reference(envs), rtol=0, atol=1e-12)
     np.testing.assert_allclose(fast.goal_xy, ref.goal_xy, rtol=0, atol=0)
     np.testing.assert_allclose(fast.goal_yaw, ref.goal_yaw, rtol=0, atol=0)
-    for x, y, yaw in start:
-        assert fast.start_clearance((x, y), yaw) == pytest.approx(ref.start_clearance_reference((x, y), yaw),
-                                                                 abs=1e-12)
+    for k, (x, y, yaw) in enumerate(start):
+        assert fast.start_clearance((x, y), yaw, k) == pytest.approx(ref.start_clearance_reference((x, y), yaw, k),
+                                                                    abs=1e-12)
 
 
 def test_observation_noise_matches_reference_across_refills():
@@ -256,7 +259,10 @@ class _ReferenceSafetyModel:
     """``safety.SafetyModel`` computed by ``build_rows_reference`` and ``spec_barrier_min_reference``."""
 
     def __init__(self, walls, cfg, num_envs):
-        self.walls, self.cfg = walls, cfg
+        self.walls, self.cfg = np.array(walls, dtype=np.float64), cfg   # its own copy: set_walls must reach it
+
+    def set_walls(self, k, walls):
+        self.walls[k] = walls
 
     def rows(self, carrier_xy, carrier_yaw, payload_xy, payload_yaw, points, grasps, pair_rest):
         geom = S.SafetyGeometry(carrier_xy, carrier_yaw, payload_xy, payload_yaw, points, grasps, pair_rest)

@@ -11,7 +11,7 @@ from common.env.config import EnvConfig
 from common.env.geometry import from_frame
 from common.env.layout import PAYLOAD_MASS
 from common.env.observations import OBS_FEATURE_NAMES, observation_noise_std
-from common.env.scenarios import SCENARIOS, Route
+from common.env.scenarios import SCENARIOS
 
 QUIET = dict(obs_noise_xy=0.0, obs_noise_yaw=0.0)
 
@@ -22,9 +22,10 @@ def _env(k=1, seed=0, **kw):
 
 
 def _start_offsets(env):
-    """Payload start pose of every env in the route-start frame: [K,3] (along, across, yaw)."""
-    route = Route(SCENARIOS[env.cfg.scenario].route)
-    xy0, yaw0 = route.points[0], route.heading[0]
+    """Payload start pose of every env in its own route-start frame (its episode's layout): [K,3]
+    (along, across, yaw)."""
+    xy0 = np.array([r.points[0] for r in env.routes])
+    yaw0 = np.array([r.heading[0] for r in env.routes])
     d = env.snap.pxy - xy0
     c, s = np.cos(yaw0), np.sin(yaw0)
     return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], env.snap.pyaw - yaw0], 1)
@@ -53,13 +54,15 @@ def test_randomize_false_is_fully_deterministic():
 
 
 def test_original_start_box_is_reproduced_with_spread_one():
-    """start_spread=1, no clearance test: the draws of the original randomization, bit for bit."""
+    """start_spread=1, no clearance test: the draws of the original randomization, bit for bit,
+    around each env's own route start (the layouts have streams of their own)."""
     K, seed = 6, 3
     env = _env(k=K, seed=seed, start_spread=1.0, start_min_clearance=0.0)
     env.reset()
     spec = SCENARIOS["narrow_gate"]
-    route = Route(spec.route)
+    assert len({r.length for r in env.routes}) == K   # every env in a layout of its own
     for k, ss in enumerate(np.random.SeedSequence(seed).spawn(K)):
+        route = env.routes[k]
         rng = np.random.default_rng(ss)
         off = rng.uniform(-1.0, 1.0, 3) * np.array(spec.start_range)
         yaw0 = float(route.heading[0])
@@ -90,7 +93,7 @@ def test_start_clearance_matches_the_snapshot():
     env = _env(k=20, seed=2, scenario="chicane", start_spread=2.0)
     env.reset()
     for k in range(env.K):
-        assert env.start_clearance(env.snap.pxy[k], env.snap.pyaw[k]) == pytest.approx(env.snap.clearance[k], abs=1e-6)
+        assert env.start_clearance(env.snap.pxy[k], env.snap.pyaw[k], k) == pytest.approx(env.snap.clearance[k], abs=1e-6)
 
 
 def test_payload_mass_is_drawn_per_episode_and_sets_the_weight():

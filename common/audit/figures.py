@@ -213,7 +213,10 @@ def colortrace(rec: Recording, path: str, cfg: AuditConfig = AuditConfig(), epis
     from matplotlib.patches import Rectangle
     from matplotlib.transforms import Affine2D
 
-    for cx, cy, hx, hy, yaw in rec.meta.get("walls", []):  # oriented boxes (cx, cy, hx, hy, yaw)
+    walls = np.asarray(rec.meta.get("walls", []), np.float64)
+    if walls.ndim == 3:   # one layout per episode (issue 29); a 2-D list is an older, shared one
+        walls = walls[episode] if episode < len(walls) else walls[:0, 0]
+    for cx, cy, hx, hy, yaw in walls.reshape(-1, 5):  # oriented boxes (cx, cy, hx, hy, yaw)
         ax_b.add_patch(Rectangle((-hx, -hy), 2 * hx, 2 * hy, color="0.55", zorder=0,
                                  transform=Affine2D().rotate(yaw).translate(cx, cy) + ax_b.transData))
     ax_b.plot(xy[:, 0], xy[:, 1], color="0.8", lw=1, zorder=1)

@@ -125,6 +125,8 @@ class Recorder:
         if self._env is None:
             self._env = env
             self._goal_xy = np.asarray(env.goal_xy, np.float64).copy()  # goals of the first episodes
+            # and their layouts' walls [K,W,5] (every episode in a layout of its own)
+            self._walls = np.asarray(getattr(env, "walls_array", np.zeros((env.K, 0, 5))), np.float64).copy()
             self._t = np.zeros(env.K, dtype=np.int64)
         step = {"episode": np.arange(env.K), "t": self._t, "obs": out["obs"], "nodes": decision["nodes"],
                 "sides": decision["sides"], "leaf": decision["leaf"], "a_st": decision["a_tree"],
@@ -151,7 +153,7 @@ class Recorder:
                 "episodes": episodes, "unfinished": episodes - len(self._metrics),
                 "episode_metrics": [self._metrics.get(k) for k in range(episodes)],
                 "feature_names": feature_names(env.obs_dim), "goal_xy": self._goal_xy.tolist(),
-                "walls": np.asarray(getattr(env, "walls_array", np.zeros((0, 5))), np.float64).tolist()}
+                "walls": self._walls.tolist()}   # [episode][wall] = (cx, cy, hx, hy, yaw)
         return Recording(**arrays, params={k: np.asarray(v) for k, v in params.items()}, meta=meta)
 
 

@@ -1,6 +1,7 @@
 """K transport environments in one process (one MjModel, K simulations): the actors' env API.
 
-The batch bookkeeping lives here: start/goal randomization, the graded-outcome
+The batch bookkeeping lives here: the per-episode layout draw (each env runs its
+episode in its own layout of the scenario, ``common/env/scene.py``), start/goal randomization, the graded-outcome
 variation (wider starts, payload mass, observation noise, actuation delay; see
 EnvConfig), the scripted human slot, auto-reset, safety rows for the next action
 and per-episode metrics.
@@ -21,12 +22,13 @@ import numpy as np
 
 from common.env import kernels, observations, task
 from common.env.config import EnvConfig
-from common.env.geometry import WallSet, from_frame
+from common.env.geometry import from_frame
 from common.env.layout import (CARRIER_RADIUS, CARRY_HEIGHT, FACING, GRASP_LOCAL, PAIR_REST, PAYLOAD_MASS,
                                PAYLOAD_POINTS_LOCAL)
 from common.env.observations import OBS_DIM, STATE_DIM, Snapshot, observation_noise_std
 from common.env.physics import TransportPhysics
-from common.env.scenarios import SCENARIOS, Route
+from common.env.scenarios import SCENARIOS, draw_layout
+from common.env.scene import PURPOSES, SceneBatch, layout_rng
 from common.env.scripted import ScriptedHuman, scripted_actions
 from common.spec import CARRIER_ACT_DIM, JOINT_ACT_DIM, N_CARRIERS
 
@@ -45,20 +47,24 @@ class BatchEnv:
     obs_dim = OBS_DIM
     state_dim = STATE_DIM
 
-    def __init__(self, cfg: EnvConfig, num_envs: int = 1, seed: int = 0):
+    def __init__(self, cfg: EnvConfig, num_envs: int = 1, seed=0, layout_purpose: str = "train"):
+        """``layout_purpose``: ``"train"`` or ``"eval"``, the layout stream its episodes draw from
+        (common/env/scene.py: evaluation runs on layouts training never draws)."""
         from common.env import safety
 
+        if layout_purpose not in PURPOSES:
+            raise ValueError(f"layout_purpose must be one of {sorted(PURPOSES)}, got {layout_purpose!r}")
         self.cfg = cfg
         self.K = num_envs
         self.spec = SCENARIOS[cfg.scenario]
-        self.route = Route(self.spec.route)
-        self.walls_array = self.spec.walls_array()
-        self.walls = WallSet(self.walls_array)
+        self.seed, self.layout_purpose = seed, layout_purpose
+        self.scene = SceneBatch(num_envs, self.spec.nominal)   # every env's current layout
+        self.layout_episode = np.zeros(num_envs, np.int64)     # episodes each env has started
         self.phys = TransportPhysics(self.spec, cfg, num_envs)
         self.max_rows = cfg.max_rows
         self.max_steps = cfg.episode_steps
         self.safety_cfg = safety_config(cfg)
-        self._safety_model = safety.SafetyModel(self.walls_array, self.safety_cfg, num_envs)
+        self._safety_model = safety.SafetyModel(self.scene.walls, self.safety_cfg, num_envs)
         seeds = np.random.SeedSequence(seed).spawn(num_envs)
         # env k's start/goal/mass (and scripted human) draws; its observation noise has its own
         # stream (a child of the same seed), so noise settings never move the starts
@@ -77,11 +83,9 @@ class BatchEnv:
         self.executed_action = np.zeros((K, JOINT_ACT_DIM))                 # last step's executed a
         self.s_prev = np.zeros(K)
         self.s_start = np.zeros(K)
-        self.goal_s = np.full(K, self.route.length)
+        self.goal_s = self.scene.route_length.copy()
         self._start = np.zeros((K, 3))   # the episode's start pose (payload x, y, yaw)
-        # _draw_start's box and frame (cos, sin of the route's start heading: numpy's, as from_frame's)
-        self._start_box = np.asarray(self.spec.start_range, np.float64) * cfg.start_spread
-        self._start_frame = np.cos(self.route.heading[0]).item(), np.sin(self.route.heading[0]).item()
+        self._start_box = np.asarray(self.spec.start_range, np.float64) * cfg.start_spread   # _draw_start's box
         self.goal_xy = np.zeros((K, 2))
         self.goal_yaw = np.zeros(K)
         self.t = np.zeros(K, dtype=np.int64)
@@ -102,80 +106,106 @@ class BatchEnv:
     START_TRIES = 100   # redraws of a start closer than start_min_clearance to a wall
     NOISE_BLOCK = 32    # observation-noise draws per env and RNG call
 
-    def start_clearance(self, xy, yaw: float) -> float:
-        """Formation clearance (payload boundary points, carrier discs; as ``Snapshot.clearance``)
-        of a start pose with the carriers on their grasps (a kernel; :meth:`start_clearance_reference`)."""
-        return float(kernels.pose_clearance(float(xy[0]), float(xy[1]), float(yaw), PAYLOAD_POINTS_LOCAL,
-                                            GRASP_LOCAL, self.walls.table, CARRIER_RADIUS))
+    @property
+    def walls_array(self) -> np.ndarray:
+        """[K,W,5] every env's current walls (a live view: each reset writes its env's row)."""
+        return self.scene.walls
 
-    def start_clearance_reference(self, xy, yaw: float) -> float:
+    @property
+    def routes(self):
+        """Every env's current route (``scenarios.Route``)."""
+        return self.scene.routes
+
+    def start_clearance(self, xy, yaw: float, env: int = 0) -> float:
+        """Formation clearance (payload boundary points, carrier discs; as ``Snapshot.clearance``)
+        of a start pose with the carriers on their grasps, in env ``env``'s walls (a kernel;
+        :meth:`start_clearance_reference`)."""
+        return float(kernels.pose_clearance(float(xy[0]), float(xy[1]), float(yaw), PAYLOAD_POINTS_LOCAL,
+                                            GRASP_LOCAL, self.scene.tables[env], CARRIER_RADIUS))
+
+    def start_clearance_reference(self, xy, yaw: float, env: int = 0) -> float:
         """Numpy :meth:`start_clearance`."""
+        walls = self.scene.wallsets[env]
         pts = xy + from_frame(PAYLOAD_POINTS_LOCAL, yaw)
         cxy = xy + from_frame(GRASP_LOCAL, yaw)
-        return float(min(self.walls.signed_distance_reference(pts).min(),
-                         self.walls.signed_distance_reference(cxy).min() - CARRIER_RADIUS))
+        return float(min(walls.signed_distance_reference(pts).min(),
+                         walls.signed_distance_reference(cxy).min() - CARRIER_RADIUS))
 
-    def _draw_start(self, rng):
-        """Start pose uniform in the scenario box x start_spread, redrawn until its clearance
-        is >= start_min_clearance (the nominal start, 0.25 m clear in every scenario, after
-        START_TRIES misses)."""
-        (x0, y0), yaw0 = self.route.points[0], float(self.route.heading[0])
-        c, s = self._start_frame   # from_frame(off, yaw0) in scalars, the same arithmetic
+    def _draw_start(self, rng, k: int):
+        """Start pose uniform in the scenario box x start_spread around env k's route start, redrawn
+        until its clearance is >= start_min_clearance (the route start, 0.25 m clear in every
+        nominal scenario, after START_TRIES misses)."""
+        route = self.scene.routes[k]
+        (x0, y0), yaw0 = route.points[0].tolist(), float(route.heading[0])
+        c, s = np.cos(yaw0).item(), np.sin(yaw0).item()   # from_frame(off, yaw0) in scalars, the same arithmetic
         for _ in range(self.START_TRIES):
             ox, oy, oyaw = (rng.uniform(-1.0, 1.0, 3) * self._start_box).tolist()
             xy, yaw = (x0 + (c * ox - s * oy), y0 + (s * ox + c * oy)), yaw0 + oyaw
-            if self.start_clearance(xy, yaw) >= self.cfg.start_min_clearance:
+            if self.start_clearance(xy, yaw, k) >= self.cfg.start_min_clearance:
                 return xy, yaw
         return (x0, y0), yaw0
 
+    def draw_layout(self, k: int, episode: int):
+        """Env k's layout of its episode ``episode`` (nominal unless randomize and layout_spread > 0)."""
+        cfg = self.cfg
+        if not cfg.randomize or cfg.layout_spread == 0:
+            return self.spec.nominal
+        return draw_layout(self.spec, layout_rng(self.seed, self.layout_purpose, k, episode), cfg.layout_spread)
+
     def _draw_episode(self, k: int):
-        """Env k's episode draws from its RNG (start pose, goal arc length, payload mass), into
-        ``_start[k]``, ``goal_s[k]``, ``payload_mass[k]``."""
-        rng, route, cfg = self.rngs[k], self.route, self.cfg
+        """Env k's episode draws: its layout from its layout stream (into ``scene``, the physics and
+        the safety model: one geometry for all three), then from its RNG the start pose, goal arc
+        length and payload mass, into ``_start[k]``, ``goal_s[k]``, ``payload_mass[k]``."""
+        layout = self.draw_layout(k, int(self.layout_episode[k]))
+        self.layout_episode[k] += 1
+        self.scene.set(k, layout)
+        self._safety_model.set_walls(k, layout.walls)
+        rng, route, cfg = self.rngs[k], self.scene.routes[k], self.cfg
         xy, yaw = route.points[0], float(route.heading[0])
         goal_s = route.length
         mass = PAYLOAD_MASS
         if cfg.randomize:
-            xy, yaw = self._draw_start(rng)
+            xy, yaw = self._draw_start(rng, k)
             goal_s -= rng.uniform(0.0, self.spec.goal_range)
             mass = float(rng.uniform(*cfg.payload_mass_range))
         self._start[k] = xy[0], xy[1], yaw
         self.goal_s[k] = goal_s
         self.payload_mass[k] = mass
+        self.phys.set_episode_model(k, mass, layout.walls)
 
     def _reset_envs(self, envs):
         """Start new episodes in envs ``envs`` (sorted indices) and snapshot them."""
         for k in envs:
             self._draw_episode(k)
-            self.phys.set_payload_mass(k, self.payload_mass[k])
         if self._act_queue is not None:
             self._act_queue[envs] = 0.0
         carriers = self._place_episodes(envs)
         start = self._start[envs]
         self.phys.reset(envs, start[:, :2], start[:, 2], carriers)
-        s = self.route.project(start[:, :2], np.zeros(len(envs)))
+        s = np.array([self.scene.routes[k].project(start[j:j + 1, :2], np.zeros(1))[0] for j, k in enumerate(envs)])
         self.s_prev[envs] = s
         self.s_start[envs] = s
         self.t[envs] = 0
         self._acc_all[:, envs] = 0.0
         self._min_clear[envs] = np.inf
-        observations.snapshot(self.phys, self.route, self.walls, self.s_prev, self.goal_s, self.cfg, self.snap, envs)
+        observations.snapshot(self.phys, self.scene, self.s_prev, self.goal_s, self.cfg, self.snap, envs)
 
     def _place_episodes(self, envs):
         """Goal poses (``goal_xy``, ``goal_yaw`` of envs) of the drawn episodes and their carrier
         poses [n,3,3] on the grasps of the start pose, in one kernel call;
         :meth:`_place_episodes_reference` is the numpy computation."""
-        route = self.route
+        sc = self.scene
         carriers = np.empty((len(envs), N_CARRIERS, 3))
-        kernels.place_episodes(envs, self._start, self.goal_s, route.points, route.heading, float(route.ds),
-                               GRASP_LOCAL, FACING, self.goal_xy, self.goal_yaw, carriers)
+        kernels.place_episodes(envs, self._start, self.goal_s, sc.route_points, sc.route_heading, sc.route_n,
+                               sc.route_ds, GRASP_LOCAL, FACING, self.goal_xy, self.goal_yaw, carriers)
         return carriers
 
     def _place_episodes_reference(self, envs):
         """Numpy :meth:`_place_episodes`."""
         start = self._start[envs]
         xy, yaw = start[:, :2], start[:, 2]
-        self.goal_xy[envs], self.goal_yaw[envs] = self.route.pose(self.goal_s[envs])
+        for k in envs:
+            self.goal_xy[k], self.goal_yaw[k] = self.scene.routes[k].pose(self.goal_s[k])
         carriers = np.empty((len(envs), N_CARRIERS, 3))
         carriers[..., :2] = xy[:, None] + from_frame(GRASP_LOCAL, yaw[:, None])
         carriers[..., 2] = yaw[:, None] + FACING
@@ -197,7 +227,7 @@ class BatchEnv:
         progress = self._progress(snap.s)
         obs = np.empty((K, N_CARRIERS, OBS_DIM), np.float32)
         state = np.empty((K, STATE_DIM), np.float32)
-        observations.observe(snap, self.walls, self.goal_xy, self.goal_yaw, progress, 1.0 - self.t / self.max_steps,
+        observations.observe(snap, self.scene, self.goal_xy, self.goal_yaw, progress, 1.0 - self.t / self.max_steps,
                              cfg, self._all, obs, state)
         self._add_noise(obs, self._all)   # the trees' view; state and rows stay true
         C, c, row_mask, *_ = self._safety_model.rows(snap.cxy, snap.cyaw, snap.pxy, snap.pyaw, PAYLOAD_POINTS_LOCAL,
@@ -286,7 +316,7 @@ class BatchEnv:
         self.executed_action[:] = a
         self.phys.step(a)
         snap = self.snap
-        observations.snapshot(self.phys, self.route, self.walls, self.s_prev, self.goal_s, cfg, snap, self._all)
+        observations.snapshot(self.phys, self.scene, self.s_prev, self.goal_s, cfg, snap, self._all)
         self.t += 1
         o = task.step_outcome(snap, self.s_prev, self.t, self.max_steps, self.goal_xy, self.goal_yaw, cfg)
         self.s_prev[:] = snap.s
@@ -308,7 +338,7 @@ class BatchEnv:
         if len(ended):
             # final observations of the ended envs, then new episodes there
             progress = self._progress(snap.s)
-            observations.observe(snap, self.walls, self.goal_xy, self.goal_yaw, progress,
+            observations.observe(snap, self.scene, self.goal_xy, self.goal_yaw, progress,
                                  1.0 - self.t / self.max_steps, cfg, ended, final_obs, final_state)
             self._add_noise(final_obs, ended)
             acc = self._acc

@@ -7,7 +7,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from common.config_fields import bounded, check_fields
-
 from common.env.scenarios import SCENARIOS
 from common.spec import N_CARRIERS
 
@@ -64,6 +63,13 @@ class EnvConfig:
     # rows hold at t=0 and no run starts in contact); 1.0 is the original box.
     start_spread: float = bounded(1.5, ge=0.0, le=10.0)
     start_min_clearance: float = bounded(0.1, ge=0.0, le=2.0)    # m
+    # Layout per episode (common/env/scenarios.py, each scenario's builder docstring): every layout
+    # parameter (gate positions and openings, corridor widths and turn points, obstacle offsets,
+    # start and goal marks) uniform in nominal +- layout_spread x its stated half-range, drawn from
+    # the env's layout stream (train or eval, common/env/scene.py). 1.0: the stated spreads (what
+    # rooms of each kind vary by; calibrated with the scripted controller, docs/protocol/calibration.md);
+    # 0.0: the nominal layout every episode (the scenarios before issue 29). Applied only when randomize.
+    layout_spread: float = bounded(1.0, ge=0.0, le=2.0)   # a scale of the stated spreads
     # Payload mass per episode, uniform (kg): the 10 kg board (layout.PAYLOAD_MASS) with a +-10%
     # material tolerance (plywood/MDF density) plus 0-1 kg of fixtures (grasp handles, clamps,
     # markers) -> 9-12 kg. Set exactly per env (each env gets its own MjModel copy whose payload

@@ -538,10 +538,12 @@ def _route_index(s, ds, n):
 
 
 @njit(cache=True, nogil=True)
-def place_episodes(envs, start, goal_s, route_points, route_heading, ds, grasp_local, facing, goal_xy, goal_yaw,
-                   carriers):
+def place_episodes(envs, start, goal_s, route_points, route_heading, route_n, route_ds, grasp_local, facing, goal_xy,
+                   goal_yaw, carriers):
     """``BatchEnv._place_episodes_reference``: rows ``envs`` of ``goal_xy``, ``goal_yaw`` (the route
-    pose at ``goal_s``) and ``carriers [n,3,3]`` (envs' carriers on the grasps of ``start [K,3]``)."""
+    pose at ``goal_s``) and ``carriers [n,3,3]`` (envs' carriers on the grasps of ``start [K,3]``).
+    Env k's route is the first ``route_n[k]`` samples of ``route_points[k]``, ``route_heading[k]``
+    (``scene.SceneBatch``), ``route_ds[k]`` apart."""
     for j in range(envs.shape[0]):
         k = envs[j]
         x, y, yaw = start[k, 0], start[k, 1], start[k, 2]
@@ -551,27 +553,31 @@ def place_episodes(envs, start, goal_s, route_points, route_heading, ds, grasp_l
             carriers[j, i, 0] = x + (c * grasp_local[i, 0] - s * grasp_local[i, 1])
             carriers[j, i, 1] = y + (s * grasp_local[i, 0] + c * grasp_local[i, 1])
             carriers[j, i, 2] = yaw + facing[i]
-        ig = _route_index(goal_s[k], ds, route_points.shape[0])
-        goal_xy[k, 0] = route_points[ig, 0]
-        goal_xy[k, 1] = route_points[ig, 1]
-        goal_yaw[k] = route_heading[ig]
+        ig = _route_index(goal_s[k], route_ds[k], route_n[k])
+        goal_xy[k, 0] = route_points[k, ig, 0]
+        goal_xy[k, 1] = route_points[k, ig, 1]
+        goal_yaw[k] = route_heading[k, ig]
 
 
 @njit(cache=True, nogil=True)
 def snapshot_rows(envs, qpos, qvel, contact, carrier_qadr, carrier_vadr, payload_qadr, payload_vadr,
-                  route_points, route_s, route_heading, ds, back, width, s_prev, goal_s, lookahead, tab, pts_local,
-                  grasp_local, hand_z, carrier_radius,
+                  route_points, route_s, route_heading, route_n, route_ds, back, route_width, s_prev, goal_s,
+                  lookahead, tabs, pts_local, grasp_local, hand_z, carrier_radius,
                   cxy, cyaw, cvel, pxy, pz, pyaw, tilt, pvel, strain, s_out, look_xy, look_yaw, route_yaw,
                   contact_out, clearance, pay_dist, pay_vec, car_dist):
     """``observations.snapshot_reference`` for envs ``envs``, written to rows ``envs`` of the snapshot
-    fields (the arguments after ``carrier_radius``); ``back``, ``width``: ``Route.project``'s window."""
-    n_route = route_points.shape[0]
-    W = tab.shape[1]
+    fields (the arguments after ``carrier_radius``). Env k's scene (``scene.SceneBatch``): walls
+    ``tabs[k]`` and route the first ``route_n[k]`` samples of ``route_points[k]`` (``route_s[k]``,
+    ``route_heading[k]``, ``route_ds[k]`` apart); ``back``, ``route_width[k]``: ``Route.project``'s window."""
+    W = tabs.shape[2]
     buf = np.empty(W)
     near, near_idx = np.empty((6, W)), np.empty(W, np.int64)
     reach = _reach(pts_local)
     for j in range(envs.shape[0]):
         k = envs[j]
+        tab = tabs[k]
+        n_route, ds = route_n[k], route_ds[k]
+        points, s_table, heading = route_points[k, :n_route], route_s[k, :n_route], route_heading[k, :n_route]
         for i in range(3):
             cxy[k, i, 0] = qpos[k, carrier_qadr[i, 0]]
             cxy[k, i, 1] = qpos[k, carrier_qadr[i, 1]]
@@ -596,13 +602,13 @@ def snapshot_rows(envs, qpos, qvel, contact, carrier_qadr, carrier_vadr, payload
         for i in range(3):
             strain[k, i] = _grasp_strain(px, py, pz[k], qw, qx, qy, qz, grasp_local[i, 0], grasp_local[i, 1],
                                          cxy[k, i, 0], cxy[k, i, 1], hand_z)
-        s = _route_project(route_points, route_s, ds, px, py, s_prev[k], back, width)
+        s = _route_project(points, s_table, ds, px, py, s_prev[k], back, route_width[k])
         s_out[k] = s
         il = _route_index(min(s + lookahead, goal_s[k]), ds, n_route)
-        look_xy[k, 0] = route_points[il, 0]
-        look_xy[k, 1] = route_points[il, 1]
-        look_yaw[k] = route_heading[il]
-        route_yaw[k] = route_heading[_route_index(s, ds, n_route)]
+        look_xy[k, 0] = points[il, 0]
+        look_xy[k, 1] = points[il, 1]
+        look_yaw[k] = heading[il]
+        route_yaw[k] = heading[_route_index(s, ds, n_route)]
         contact_out[k] = contact[k]
         c = math.cos(yaw)
         sn = math.sin(yaw)
@@ -636,17 +642,18 @@ def _to_frame(x, y, c, s):
 
 @njit(cache=True, nogil=True)
 def observe_rows(envs, cxy, cyaw, cvel, pxy, pz, pyaw, tilt, pvel, strain, look_xy, look_yaw, clearance, pay_dist,
-                 pay_vec, goal_xy, goal_yaw, progress, time_left, human_slot, tab, grasp_local, facing,
+                 pay_vec, goal_xy, goal_yaw, progress, time_left, human_slot, tabs, grasp_local, facing,
                  ray_angles, v_scale, w_scale, lookahead, drop_strain, carrier_radius, ray_max, carry_height,
                  obs, state):
     """``observations.observe_reference`` for envs ``envs``: rows ``envs`` of ``obs [K,3,OBS_DIM]`` and
     ``state [K,STATE_DIM]`` (float32; computed in float64 in the references' order of operations).
-    ``human_slot`` is -1 without a human."""
-    W = tab.shape[1]
+    ``human_slot`` is -1 without a human; env k's walls are ``tabs[k]``."""
+    W = tabs.shape[2]
     buf = np.empty(W)
     near, near_idx = np.empty((6, W)), np.empty(W, np.int64)
     for j in range(envs.shape[0]):
         k = envs[j]
+        tab = tabs[k]
         px, py, yaw = pxy[k, 0], pxy[k, 1], pyaw[k]
         lcos, lsin = math.cos(look_yaw[k]), math.sin(look_yaw[k])
         pcos, psin = math.cos(yaw), math.sin(yaw)

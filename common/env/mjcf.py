@@ -23,21 +23,28 @@ from common.spec import N_CARRIERS
 
 
 def _f(*xs) -> str:
-    return " ".join(f"{x:.12g}" for x in xs)
+    return " ".join(repr(float(x)) for x in xs)   # shortest exact form: the model holds the very floats
 
 
-def build_mjcf(spec: ScenarioSpec, cfg: EnvConfig) -> str:
+def wall_body(k: int, wall) -> str:
+    """Wall k, a box ``(cx, cy, hx, hy, yaw)``, as a static body of one massless geom: a body of its
+    own (not a geom of the world body, whose bounding-volume tree over all its geoms the compiler
+    builds once), so that a layout drawn per episode moves and resizes it in the compiled model
+    (``physics.set_model_walls``) exactly as compiling this MJCF with the drawn walls would."""
+    cx, cy, hx, hy, yaw = (float(v) for v in wall)
+    return (f'    <body name="wall{k}" pos="{_f(cx, cy, WALL_HEIGHT / 2)}" euler="0 0 {_f(yaw)}">'
+            f'<geom name="wall{k}" type="box" size="{_f(hx, hy, WALL_HEIGHT / 2)}" class="wall"/></body>')
+
+
+def build_mjcf(spec: ScenarioSpec, cfg: EnvConfig, walls=None) -> str:
+    """The scenario's MJCF with ``walls`` ``[W,5]`` (default: its nominal layout's)."""
     m = cfg.carrier_mass
     # critically damped tracker: kv = 2 sqrt(kp * m) (implicitfast integrates kv implicitly)
     payload_share = PAYLOAD_MASS / N_CARRIERS
     kv_xy = 2.0 * math.sqrt(cfg.kp_xy * (m + payload_share))
     i_yaw = 0.5 * m * CARRIER_RADIUS**2
     kv_yaw = 2.0 * math.sqrt(cfg.kp_yaw * i_yaw)
-    walls = "\n".join(
-        f'    <geom name="wall{k}" type="box" pos="{_f(cx, cy, WALL_HEIGHT / 2)}" '
-        f'size="{_f(hx, hy, WALL_HEIGHT / 2)}" euler="0 0 {yaw:.12g}" class="wall"/>'
-        for k, (cx, cy, hx, hy, yaw) in enumerate(spec.walls)
-    )
+    walls = "\n".join(wall_body(k, w) for k, w in enumerate(spec.walls if walls is None else walls))
     carriers, actuators, equalities = [], [], []
     for i in range(N_CARRIERS):
         carriers.append(f"""
@@ -68,7 +75,7 @@ def build_mjcf(spec: ScenarioSpec, cfg: EnvConfig) -> str:
   <compiler angle="radian"/>
   <option timestep="{cfg.timestep:.6g}" integrator="implicitfast" gravity="0 0 -9.81"/>
   <default>
-    <default class="wall"><geom contype="2" conaffinity="0" rgba="0.6 0.6 0.6 1"/></default>
+    <default class="wall"><geom contype="2" conaffinity="0" mass="0" rgba="0.6 0.6 0.6 1"/></default>
     <geom friction="0.8 0.02 0.001"/>
   </default>
   <worldbody>

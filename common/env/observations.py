@@ -6,19 +6,16 @@ carrier's own frame (x forward, y left) and scaled to O(1); names are stable
 """
 from __future__ import annotations
 
-import functools
-import inspect
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from common.env import kernels
 from common.env.config import EnvConfig
-from common.env.geometry import WallSet, from_frame, to_frame, wrap
+from common.env.geometry import from_frame, to_frame, wrap
 from common.env.layout import CARRIER_RADIUS, CARRY_HEIGHT, FACING, GRASP_LOCAL, PAYLOAD_POINTS_LOCAL
 from common.env.physics import TransportPhysics, quat_to_yaw_tilt
-from common.env.scenarios import Route
+from common.env.scene import PROJECT_BACK, SceneBatch
 from common.spec import N_CARRIERS
 
 OBS_FEATURE_NAMES: list[str] = [
@@ -42,9 +39,6 @@ OBS_FEATURE_NAMES: list[str] = [
 OBS_DIM = len(OBS_FEATURE_NAMES)
 RAY_MAX = 2.0
 _RAY_ANGLES = np.array([0.0, np.pi / 2, np.pi, -np.pi / 2])
-# Route.project's search window (its defaults), for the snapshot kernel's inlined projection
-_PROJECT_BACK, _PROJECT_AHEAD = (inspect.signature(Route.project).parameters[name].default
-                                 for name in ("back", "ahead"))
 
 
 def feature_units(cfg: EnvConfig) -> dict[str, tuple[float, str]]:
@@ -144,47 +138,43 @@ class Snapshot:
             getattr(self, name)[idx] = getattr(other, name)
 
 
-def snapshot(phys: TransportPhysics, route: Route, walls: WallSet, s_prev, goal_s, cfg: EnvConfig, out: Snapshot,
-             envs):
-    """Fill rows ``envs`` (sorted indices) of ``out`` with the snapshot of those envs (``s_prev``,
-    ``goal_s`` [K]: previous route projections and goal arc lengths), in one kernel call;
-    :func:`snapshot_reference` is the numpy computation."""
+def snapshot(phys: TransportPhysics, scene: SceneBatch, s_prev, goal_s, cfg: EnvConfig, out: Snapshot, envs):
+    """Fill rows ``envs`` (sorted indices) of ``out`` with the snapshot of those envs in their own
+    layouts (``scene``; ``s_prev``, ``goal_s`` [K]: previous route projections and goal arc
+    lengths), in one kernel call; :func:`snapshot_reference` is the numpy computation."""
     kernels.snapshot_rows(
         envs, phys.qpos, phys.qvel, phys.contact, phys.carrier_qadr, phys.carrier_vadr, phys.payload_qadr,
-        phys.payload_vadr, route.points, route.s, route.heading, float(route.ds), _PROJECT_BACK,
-        _project_width(route.ds), s_prev, goal_s, float(cfg.lookahead), walls.table, PAYLOAD_POINTS_LOCAL,
+        phys.payload_vadr, scene.route_points, scene.route_s, scene.route_heading, scene.route_n, scene.route_ds,
+        PROJECT_BACK, scene.route_width, s_prev, goal_s, float(cfg.lookahead), scene.tables, PAYLOAD_POINTS_LOCAL,
         GRASP_LOCAL, CARRY_HEIGHT, CARRIER_RADIUS, out.cxy, out.cyaw, out.cvel, out.pxy, out.pz, out.pyaw, out.tilt,
         out.pvel, out.strain, out.s, out.look_xy, out.look_yaw, out.route_yaw, out.contact, out.clearance,
         out.pay_dist, out.pay_vec, out.car_dist)
 
 
-@functools.cache
-def _project_width(ds: float) -> int:
-    """Samples in Route.project's search window (as it computes it)."""
-    return math.ceil((_PROJECT_BACK + _PROJECT_AHEAD) / ds) + 1
-
-
-def snapshot_reference(phys: TransportPhysics, route, walls: WallSet, s_prev, goal_s, cfg: EnvConfig, out: Snapshot,
+def snapshot_reference(phys: TransportPhysics, scene: SceneBatch, s_prev, goal_s, cfg: EnvConfig, out: Snapshot,
                        envs):
-    """Numpy :func:`snapshot` (with the numpy references of the geometry queries)."""
-    cp = phys.carrier_pose[envs]
-    pos = phys.payload_pos[envs]
-    yaw, tilt = quat_to_yaw_tilt(phys.payload_quat[envs])
-    pxy = pos[:, :2].copy()
-    s = route.project_reference(pxy, s_prev[envs])
-    s_look = np.minimum(s + cfg.lookahead, goal_s[envs])
-    look_xy, look_yaw = route.pose(s_look)
-    _, route_yaw = route.pose(s)
-    pts = pxy[:, None, :] + from_frame(PAYLOAD_POINTS_LOCAL[None], yaw[:, None])
-    pay_dist, pay_vec = walls.nearest_reference(pts)
-    car_dist = np.min(walls.signed_distance_reference(cp[..., :2]), axis=-1, initial=np.inf)
-    d_car = car_dist.min(axis=-1) - CARRIER_RADIUS
-    out.put(envs, Snapshot(
-        cxy=cp[..., :2].copy(), cyaw=cp[..., 2].copy(), cvel=phys.carrier_vel[envs], pxy=pxy, pz=pos[:, 2].copy(),
-        pyaw=yaw, tilt=tilt, pvel=phys.payload_vel[envs], strain=phys.grasp_strain_reference()[envs], s=s,
-        look_xy=look_xy, look_yaw=look_yaw, route_yaw=route_yaw, contact=phys.contact[envs].copy(),
-        clearance=np.minimum(pay_dist.min(axis=1), d_car), pay_dist=pay_dist, pay_vec=pay_vec, car_dist=car_dist,
-    ))
+    """Numpy :func:`snapshot` (with the numpy references of the geometry queries), env by env."""
+    strain = phys.grasp_strain_reference()
+    for k in np.atleast_1d(envs):
+        route, walls = scene.routes[k], scene.wallsets[k]
+        cp = phys.carrier_pose[[k]]
+        pos = phys.payload_pos[[k]]
+        yaw, tilt = quat_to_yaw_tilt(phys.payload_quat[[k]])
+        pxy = pos[:, :2].copy()
+        s = route.project_reference(pxy, s_prev[[k]])
+        s_look = np.minimum(s + cfg.lookahead, goal_s[[k]])
+        look_xy, look_yaw = route.pose(s_look)
+        _, route_yaw = route.pose(s)
+        pts = pxy[:, None, :] + from_frame(PAYLOAD_POINTS_LOCAL[None], yaw[:, None])
+        pay_dist, pay_vec = walls.nearest_reference(pts)
+        car_dist = np.min(walls.signed_distance_reference(cp[..., :2]), axis=-1, initial=np.inf)
+        d_car = car_dist.min(axis=-1) - CARRIER_RADIUS
+        out.put([k], Snapshot(
+            cxy=cp[..., :2].copy(), cyaw=cp[..., 2].copy(), cvel=phys.carrier_vel[[k]], pxy=pxy,
+            pz=pos[:, 2].copy(), pyaw=yaw, tilt=tilt, pvel=phys.payload_vel[[k]], strain=strain[[k]], s=s,
+            look_xy=look_xy, look_yaw=look_yaw, route_yaw=route_yaw, contact=phys.contact[[k]].copy(),
+            clearance=np.minimum(pay_dist.min(axis=1), d_car), pay_dist=pay_dist, pay_vec=pay_vec, car_dist=car_dist,
+        ))
 
 
 def slot_targets(snap: Snapshot):
@@ -194,7 +184,7 @@ def slot_targets(snap: Snapshot):
     return slot, snap.look_yaw[:, None] + FACING
 
 
-def observe(snap: Snapshot, walls: WallSet, goal_xy, goal_yaw, progress, time_left, cfg: EnvConfig, envs, obs, state):
+def observe(snap: Snapshot, scene: SceneBatch, goal_xy, goal_yaw, progress, time_left, cfg: EnvConfig, envs, obs, state):
     """Rows ``envs`` of the per-carrier observations ``obs [K,3,OBS_DIM]`` (order of
     OBS_FEATURE_NAMES) and the critic's state ``state [K,STATE_DIM]`` (both float32, noise-free),
     in one kernel call; ``goal_*``, ``progress``, ``time_left`` are [K]. :func:`observe_reference`
@@ -203,22 +193,24 @@ def observe(snap: Snapshot, walls: WallSet, goal_xy, goal_yaw, progress, time_le
     kernels.observe_rows(
         envs, snap.cxy, snap.cyaw, snap.cvel, snap.pxy, snap.pz, snap.pyaw, snap.tilt, snap.pvel, snap.strain,
         snap.look_xy, snap.look_yaw, snap.clearance, snap.pay_dist, snap.pay_vec, goal_xy, goal_yaw, progress,
-        time_left, human, walls.table, GRASP_LOCAL, FACING, _RAY_ANGLES, cfg.max_step_xy / cfg.control_dt,
+        time_left, human, scene.tables, GRASP_LOCAL, FACING, _RAY_ANGLES, cfg.max_step_xy / cfg.control_dt,
         cfg.max_step_yaw / cfg.control_dt, float(cfg.lookahead), float(cfg.drop_strain), CARRIER_RADIUS, RAY_MAX,
         CARRY_HEIGHT, obs, state)
 
 
-def observe_reference(snap: Snapshot, walls: WallSet, goal_xy, goal_yaw, progress, time_left, cfg: EnvConfig, envs,
-                      obs, state):
-    """Numpy :func:`observe`."""
-    sub = snap.take(envs)
-    o = observations_reference(sub, walls, goal_xy[envs], goal_yaw[envs], progress[envs], time_left[envs], cfg)
-    obs[envs] = o
-    state[envs] = global_state_reference(sub, o, goal_xy[envs], goal_yaw[envs], progress[envs], time_left[envs],
-                                         cfg.human_slot, cfg)
+def observe_reference(snap: Snapshot, scene: SceneBatch, goal_xy, goal_yaw, progress, time_left, cfg: EnvConfig,
+                      envs, obs, state):
+    """Numpy :func:`observe`, env by env (each in its own walls)."""
+    for k in np.atleast_1d(envs):
+        e = [k]
+        sub = snap.take(e)
+        o = observations_reference(sub, scene.wallsets[k], goal_xy[e], goal_yaw[e], progress[e], time_left[e], cfg)
+        obs[e] = o
+        state[e] = global_state_reference(sub, o, goal_xy[e], goal_yaw[e], progress[e], time_left[e],
+                                          cfg.human_slot, cfg)
 
 
-def observations_reference(snap: Snapshot, walls: WallSet, goal_xy, goal_yaw, progress, time_left, cfg: EnvConfig):
+def observations_reference(snap: Snapshot, walls, goal_xy, goal_yaw, progress, time_left, cfg: EnvConfig):
     """Per-carrier observations [K,3,OBS_DIM] float32 (order of OBS_FEATURE_NAMES) of a snapshot of K envs."""
     K = len(snap.pxy)
     cyaw = snap.cyaw

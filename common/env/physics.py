@@ -87,6 +87,33 @@ def set_model_payload_mass(m: mujoco.MjModel, nominal: mujoco.MjModel, body: int
     stat.meaninertia = float(np.add.reduce(dof_m0) / len(dof_m0))
 
 
+def set_model_walls(m: mujoco.MjModel, walls, wall_bodies, wall_geoms):
+    """Move and resize the wall boxes ``walls [W,5]`` ``(cx, cy, hx, hy, yaw)`` of ``m`` (wall k is the
+    one geom ``wall_geoms[k]`` of the static body ``wall_bodies[k]``, ``mjcf.wall_body``): the fields
+    the compiler derives from a wall's pose and size (body pose, geom size, its bounding box and
+    sphere, the body's one-node bounding-volume tree), so that ``m`` is the model compiled with these
+    walls (tested field by field)."""
+    walls = np.asarray(walls, dtype=np.float64)
+    half = walls[:, 2:4]
+    quat = np.zeros((len(walls), 4))
+    quat[:, 0] = np.cos(walls[:, 4] / 2)
+    quat[:, 3] = np.sin(walls[:, 4] / 2)
+    m.body_pos[wall_bodies, :2] = walls[:, :2]
+    m.body_quat[wall_bodies] = quat
+    # a massless static body's inertial frame, as the compiler sets it: its body pose, and the
+    # kinematics shortcut flag "same rotation as the body" (mjSAMEFRAME_BODYROT) only when unrotated
+    m.body_ipos[wall_bodies] = m.body_pos[wall_bodies]
+    m.body_iquat[wall_bodies] = quat
+    unrotated = np.abs(quat - [1.0, 0.0, 0.0, 0.0]).max(axis=1) < 1e-14
+    m.body_sameframe[wall_bodies] = np.where(unrotated, int(mujoco.mjtSameFrame.mjSAMEFRAME_BODYROT),
+                                             int(mujoco.mjtSameFrame.mjSAMEFRAME_NONE))
+    size = m.geom_size
+    size[wall_geoms, :2] = half
+    m.geom_aabb[wall_geoms, 3:5] = half    # [centre (3), half-sizes (3)] in the geom frame
+    m.geom_rbound[wall_geoms] = np.sqrt((size[wall_geoms] ** 2).sum(axis=1))
+    m.bvh_aabb[m.body_bvhadr[wall_bodies], 3:5] = half   # one node per wall body: its geom's box
+
+
 def tracker_targets_reference(carrier_pose, ctrl, actions, cfg: EnvConfig) -> np.ndarray:
     """New tracker targets [K,9] from the measured carrier poses [K,3,3], the current targets
     ``ctrl`` [K,9] and stacked actions [K,9] (carrier-frame, in [-1,1]); the numpy reference of
@@ -134,12 +161,14 @@ class TransportPhysics:
     """One MjModel, K simulations in one ``mujoco.batch.Batch``; the state of all K is live
     [K, ...] arrays (``qpos``, ``qvel``; ``_ctrl`` the tracker targets), written in place.
 
-    Payload mass randomization (``set_payload_mass``) needs a per-env model, since
-    masses live in the MjModel: an env whose payload mass differs from the nominal one
-    gets its own copy of the model (``models[k]``; ~30 kB), with the payload body's mass
-    and inertia scaled (uniform density) and the derived constants (``mj_setConst``)
-    recomputed, as if the MJCF had been compiled with that mass (tested). ``model`` stays
-    the nominal model; the batch runs env k on ``models[k]``.
+    Payload mass randomization (``set_payload_mass``) and drawn layouts (``set_walls``) need a
+    per-env model, since masses and static geometry live in the MjModel: an env whose payload
+    mass or walls differ from the nominal ones gets its own copy of the model (``models[k]``;
+    ~30 kB), with the payload body's mass and inertia scaled (uniform density) and the derived
+    constants (``mj_setConst``) recomputed, and its wall bodies moved and resized
+    (:func:`set_model_walls`), as if the MJCF had been compiled with that mass and those walls
+    (tested); nothing is recompiled. ``model`` stays the nominal model; the batch runs env k on
+    ``models[k]``.
     """
 
     def __init__(self, spec: ScenarioSpec, cfg: EnvConfig, num_envs: int):
@@ -148,6 +177,12 @@ class TransportPhysics:
         self.cfg = cfg
         self.xml = build_mjcf(spec, cfg)
         self.model = compile_model(self.xml)
+        self.nominal_walls = spec.walls_array()
+        W = len(self.nominal_walls)
+        self.wall_bodies = np.array([mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, f"wall{w}") for w in range(W)])
+        self.wall_geoms = np.array([mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, f"wall{w}") for w in range(W)])
+        self._env_mass = np.full(num_envs, PAYLOAD_MASS)
+        self._env_walls = np.repeat(self.nominal_walls[None], num_envs, axis=0)
         self.models = [self.model] * num_envs   # per env; a copy once its payload mass is changed
         self.K = num_envs
         # one thread (the caller's); not persistent: one MjData serves all K, which keeps it in cache
@@ -235,13 +270,36 @@ class TransportPhysics:
 
     def set_payload_mass(self, k: int, mass: float):
         """Give env k a payload of ``mass`` kg (mass and inertia scaled; takes effect at the next
-        reset or step, call before ``reset``). The nominal mass shares the nominal model again."""
+        reset or step, call before ``reset``)."""
+        self.set_episode_model(k, mass, self._env_walls[k])
+
+    def set_walls(self, k: int, walls):
+        """Give env k the walls ``[W,5]`` of a drawn layout (same count as the nominal; takes
+        effect at the next reset or step, call before ``reset``)."""
+        self.set_episode_model(k, self._env_mass[k], walls)
+
+    def walls(self, k: int) -> np.ndarray:
+        """Env k's walls ``[W,5]`` as its model has them."""
+        return self._env_walls[k].copy()
+
+    def set_episode_model(self, k: int, mass: float, walls):
+        """Env k's model: payload ``mass`` kg and ``walls`` ``[W,5]``; the nominal mass and walls
+        share the nominal model again."""
+        walls = np.asarray(walls, dtype=np.float64)
+        if walls.shape != self.nominal_walls.shape or not np.isfinite(walls).all() or np.any(walls[:, 2:4] <= 0):
+            raise ValueError(f"walls must be finite [{len(self.nominal_walls)},5] boxes with positive half-sizes")
         self._models_changed = True
-        if mass == PAYLOAD_MASS:
+        self._env_mass[k] = mass
+        moved = not np.array_equal(walls, self._env_walls[k])
+        self._env_walls[k] = walls
+        if mass == PAYLOAD_MASS and np.array_equal(walls, self.nominal_walls):
             self.models[k] = self.model
             return
         if self.models[k] is self.model:
             self.models[k] = copy.copy(self.model)   # MjModel copies are deep
+            moved = True
+        if moved:   # the same layout again (layout_spread=0) keeps its walls
+            set_model_walls(self.models[k], walls, self.wall_bodies, self.wall_geoms)
         set_model_payload_mass(self.models[k], self.model, self.payload_body, mass, self._scratch)
 
     def _sync_models(self):

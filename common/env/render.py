@@ -1,5 +1,6 @@
 """Top-down scenario figures (matplotlib): walls, reference route, goal, and the payload
-poses of a scripted rollout (as the paper's nine-scenario figure)."""
+poses of a scripted rollout (as the paper's nine-scenario figure), over the outlines of
+further layouts drawn from the scenario's family (the spread; eval layout stream)."""
 from __future__ import annotations
 
 import numpy as np
@@ -10,17 +11,36 @@ from common.env.scenarios import SCENARIOS, Route
 
 
 def scripted_rollout(name: str, seed: int = 0, cfg: EnvConfig | None = None):
-    """One scripted episode: list of (payload_xy, payload_yaw, carrier_xy [3,2]) per step, and its record."""
+    """One scripted episode (env 0's first layout of the eval stream): list of (payload_xy,
+    payload_yaw, carrier_xy [3,2]) per step, its record, and its layout."""
     from common.env.batch_env import BatchEnv
 
-    env = BatchEnv(cfg or EnvConfig(name), num_envs=1, seed=seed)
+    env = BatchEnv(cfg or EnvConfig(name), num_envs=1, seed=seed, layout_purpose="eval")
     env.reset()
+    layout = env.scene.layouts[0]
     poses = [(env.snap.pxy[0].copy(), float(env.snap.pyaw[0]), env.snap.cxy[0].copy())]
     while True:
         out = env.step(env.scripted_actions())
         if out["episodes"]:
-            return poses, out["episodes"][0]
+            return poses, out["episodes"][0], layout
         poses.append((env.snap.pxy[0].copy(), float(env.snap.pyaw[0]), env.snap.cxy[0].copy()))
+
+
+def drawn_layouts(name: str, n: int, seed: int = 0, cfg: EnvConfig | None = None):
+    """The first-episode layouts of envs 0..n-1 (eval stream), as ``BatchEnv`` draws them."""
+    from common.env.batch_env import BatchEnv
+
+    env = BatchEnv(cfg or EnvConfig(name), num_envs=n, seed=seed, layout_purpose="eval")
+    return [env.draw_layout(k, 0) for k in range(n)]
+
+
+def _corners(walls):
+    c, s = np.cos(walls[:, 4:5]), np.sin(walls[:, 4:5])
+    pts = []
+    for sx, sy in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
+        lx, ly = sx * walls[:, 2:3], sy * walls[:, 3:4]
+        pts.append(np.concatenate([walls[:, 0:1] + c * lx - s * ly, walls[:, 1:2] + s * lx + c * ly], axis=1))
+    return np.concatenate(pts)
 
 
 def _box(ax, cx, cy, hx, hy, yaw, **kw):
@@ -32,15 +52,23 @@ def _box(ax, cx, cy, hx, hy, yaw, **kw):
     ax.add_patch(Polygon(pts, closed=True, **kw))
 
 
-def draw_scenario(ax, name: str, seed: int = 0, every: int = 12):
+def draw_scenario(ax, name: str, seed: int = 0, every: int = 12, layouts: int = 6):
+    """The scripted rollout in the first of ``layouts`` drawn layouts (solid walls), over the wall
+    outlines of the others (the family's spread); returns the rollout's record."""
     from matplotlib.patches import Circle
 
     spec = SCENARIOS[name]
-    for w in spec.walls:
-        _box(ax, *w, facecolor="0.35", edgecolor="0.2", lw=0.5)
-    route = Route(spec.route)
+    poses, rec, layout = scripted_rollout(name, seed)
+    others = drawn_layouts(name, layouts, seed)[1:] if layouts > 1 else []
+    for lay in others:
+        for w in lay.walls:
+            _box(ax, *w, facecolor="none", edgecolor="tab:red", lw=0.5, alpha=0.45)
+    for w in layout.walls:
+        _box(ax, *w, facecolor="0.35", edgecolor="0.2", lw=0.5, alpha=0.85)
+    for lay in others:
+        ax.plot(lay.route[:, 0], lay.route[:, 1], ":", color="tab:green", lw=0.5, alpha=0.6)
+    route = Route(layout.route)
     ax.plot(route.points[:, 0], route.points[:, 1], "--", color="tab:green", lw=1.0, label="route")
-    poses, rec = scripted_rollout(name, seed)
     sel = list(range(0, len(poses), every)) + [len(poses) - 1]
     cmap = __import__("matplotlib").colormaps["viridis"]
     for j, t in enumerate(sel):
@@ -51,15 +79,19 @@ def draw_scenario(ax, name: str, seed: int = 0, every: int = 12):
             ax.add_patch(Circle(cxy[i], CARRIER_RADIUS, facecolor="none", edgecolor=col, lw=0.6))
     track = np.array([p[0] for p in poses])
     ax.plot(track[:, 0], track[:, 1], color="tab:orange", lw=1.0)
-    ax.set_xlim(spec.bounds[0], spec.bounds[1])
-    ax.set_ylim(spec.bounds[2], spec.bounds[3])
+    corners = _corners(np.concatenate([layout.walls] + [lay.walls for lay in others]))
+    lo, hi = corners.min(axis=0) - 0.1, corners.max(axis=0) + 0.1
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
     ax.set_aspect("equal")
-    ax.set_title(f"{spec.title} ({spec.family})" + ("" if rec["success"] else " [scripted run failed]"), fontsize=9)
+    spread = f", {1 + len(others)} layouts" if others else ""
+    ax.set_title(f"{spec.title} ({spec.family}{spread})" + ("" if rec["success"] else " [scripted run failed]"),
+                 fontsize=9)
     ax.tick_params(labelsize=6)
     return rec
 
 
-def render(out: str, names: list[str], seed: int = 0):
+def render(out: str, names: list[str], seed: int = 0, layouts: int = 6):
     import matplotlib
 
     matplotlib.use("Agg")
@@ -71,7 +103,7 @@ def render(out: str, names: list[str], seed: int = 0):
     fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.4 * rows), squeeze=False)
     records = {}
     for ax, name in zip(axes.flat, names):
-        records[name] = draw_scenario(ax, name, seed)
+        records[name] = draw_scenario(ax, name, seed, layouts=layouts)
     for ax in list(axes.flat)[n:]:
         ax.axis("off")
     fig.tight_layout()

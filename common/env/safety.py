@@ -520,6 +520,15 @@ class SafetyModel:
         self._barrier_prm = (float(cfg.carrier_radius), float(cfg.payload_margin), float(cfg.grasp_tol),
                              bool(cfg.formation_budget))
 
+    def set_walls(self, k: int, walls: np.ndarray):
+        """Env k's walls ``[W,5]`` from now on (a drawn layout; the model must hold per-env walls)."""
+        walls = np.asarray(walls, dtype=np.float64)
+        if self.tables.shape[0] != self.num_envs or walls.shape != (self.tables.shape[2], 5):
+            raise ValueError(f"set_walls needs per-env walls [K,W,5] at construction and [W,5] here, got {walls.shape}")
+        if not np.isfinite(walls).all() or (walls[:, 2:4] < 0).any():
+            raise ValueError("walls must be finite with non-negative half-sizes")
+        self.tables[k] = wall_table(walls)
+
     def rows(self, carrier_xy, carrier_yaw, payload_xy, payload_yaw, payload_points_local, grasp_local, pair_rest):
         K, M = self.num_envs, int(self.cfg.max_rows)
         C, c, h = np.empty((K, M, JOINT_ACT_DIM)), np.empty((K, M)), np.empty((K, M))

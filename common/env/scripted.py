@@ -16,10 +16,16 @@ from common.env.observations import Snapshot
 from common.spec import JOINT_ACT_DIM
 
 
-def scripted_actions(snap: Snapshot, cfg: EnvConfig, speed: float = 0.85, max_turn: float = 0.05):
-    """Stacked actions [K,9] in [-1,1] of the reference controller."""
+def scripted_actions(snap: Snapshot, cfg: EnvConfig, speed: float = 0.85, max_turn: float = 0.05,
+                     aim_offset: float = 0.0):
+    """Stacked actions [K,9] in [-1,1] of the reference controller. ``aim_offset`` (m) moves its aim
+    point sideways, to the left of the route's lookahead heading: a biased controller that tracks
+    a line ``aim_offset`` off the route (the calibration's "aimed 0.2 m off the route")."""
     K = len(snap.pxy)
-    e = snap.look_xy - snap.pxy
+    look_xy = snap.look_xy
+    if aim_offset:
+        look_xy = look_xy + aim_offset * np.stack([-np.sin(snap.look_yaw), np.cos(snap.look_yaw)], axis=1)
+    e = look_xy - snap.pxy
     dist = np.linalg.norm(e, axis=1, keepdims=True)
     v = e * np.minimum(1.0, speed * cfg.max_step_xy / np.maximum(dist, 1e-9))
     w = np.clip(wrap(snap.look_yaw - snap.pyaw), -max_turn, max_turn)

@@ -76,7 +76,7 @@ def evaluate_policy(params: dict, env_cfg, episodes: int, seed: int, shielded: b
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     params = ValidatedParams(params)   # checked once here, not in every step's forward
-    env = BatchEnv(env_cfg, episodes, seed=seed)
+    env = BatchEnv(env_cfg, episodes, seed=seed, layout_purpose="eval")   # held-out layouts
     out = env.reset()
     first: list[dict | None] = [None] * episodes
     steps = interventions = infeasible = violations = 0

@@ -225,17 +225,23 @@ def _box_corners(cx, cy, hx, hy, yaw) -> np.ndarray:
 class TopDownView:
     """2-D scene (Pillow, no GL): the whole scenario within its plot bounds."""
 
-    def __init__(self, spec, route_points: np.ndarray, width: int, height: int):
+    def __init__(self, spec, route_points: np.ndarray, width: int, height: int, walls=None):
+        """``walls`` [W,5]: the episode's layout (default: the spec's nominal walls)."""
         from PIL import Image, ImageDraw
 
         self.w, self.h = width, height
         x0, x1, y0, y1 = spec.bounds
+        walls = spec.walls if walls is None else walls
+        if len(walls):   # a drawn layout may reach past the nominal plot extent
+            pts = np.concatenate([_box_corners(*w) for w in walls])
+            x0, y0 = np.minimum([x0, y0], pts.min(axis=0) - 0.1)
+            x1, y1 = np.maximum([x1, y1], pts.max(axis=0) + 0.1)
         self.scale = min((width - 8) / (x1 - x0), (height - 8) / (y1 - y0))
         self.origin = np.array([0.5 * (width - self.scale * (x1 + x0)), 0.5 * (height + self.scale * (y1 + y0))])
         # walls and route never move: drawn once
         self.background = Image.new("RGB", (width, height), FLOOR)
         draw = ImageDraw.Draw(self.background)
-        for wall in spec.walls:
+        for wall in walls:
             draw.polygon([tuple(p) for p in self.px(_box_corners(*wall))], fill=WALL)
         draw.line([tuple(p) for p in self.px(route_points)], fill=ROUTE, width=1)
 
@@ -482,9 +488,10 @@ class VideoRecorder:
         if self.cfg.episode >= env.K:
             raise ValueError(f"video episode {self.cfg.episode} is not among the {env.K} evaluated episodes")
         if self.cfg.view == "camera":
-            self._view = CameraView(env.phys.model, self.width, self.scene_h)
-        else:
-            self._view = TopDownView(env.spec, env.route.points, self.width, self.scene_h)
+            self._view = CameraView(env.phys.models[self.cfg.episode], self.width, self.scene_h)
+        else:   # the episode's own layout
+            k = self.cfg.episode
+            self._view = TopDownView(env.spec, env.routes[k].points, self.width, self.scene_h, env.walls_array[k])
         fps = self.cfg.fps or 1.0 / (env.cfg.control_dt * self.cfg.every)
         self._writer = _Writer(self.path, fps)
         title = self.title or f"{env.cfg.scenario}, episode {self.cfg.episode}"

@@ -15,13 +15,14 @@ from sage.errors import nonneg_int, positive_int
 
 def _record_physics_calls(env):
     """Wrap ``env.phys.batch.step`` to keep the state rows (mjSTATE_INTEGRATION: state, applied
-    tracker targets, grasps, solver warm start) and the payload masses each call starts from."""
+    tracker targets, grasps, solver warm start), the payload masses and the walls (the envs' drawn
+    layouts) each call starts from."""
     calls = []
     phys = env.phys
     step = phys.batch.step
 
     def recording_step(*args, **kwargs):
-        calls.append((phys.batch.state.copy(), env.payload_mass.copy()))
+        calls.append((phys.batch.state.copy(), env.payload_mass.copy(), env.walls_array.copy()))
         return step(*args, **kwargs)
 
     phys.batch.step = recording_step
@@ -31,14 +32,14 @@ def _record_physics_calls(env):
 def _replay_inputs(phys, calls):
     """mujoco.rollout inputs that replay the recorded physics calls: one rollout of ``substeps``
     steps per (control step, env) from its recorded state, with its applied controls held and
-    its model (the MJCF's, without the env's contact sensors, at that env's payload mass)."""
+    its model (the MJCF's, without the env's contact sensors, at that env's payload mass and walls)."""
     import copy
 
     import mujoco
     import numpy as np
 
     from common.env.layout import PAYLOAD_MASS
-    from common.env.physics import set_model_payload_mass
+    from common.env.physics import set_model_payload_mass, set_model_walls
 
     bare = mujoco.MjModel.from_xml_string(phys.xml)
     data = mujoco.MjData(bare)
@@ -49,8 +50,10 @@ def _replay_inputs(phys, calls):
     state0 = np.empty((n, mujoco.mj_stateSize(bare, full)))
     warm0 = np.empty((n, bare.nv))
     control = np.empty((n, phys.cfg.substeps, mujoco.mj_stateSize(bare, ctrl_spec)))
-    models, by_mass = [], {PAYLOAD_MASS: bare}
-    for t, (rows, masses) in enumerate(calls):
+    wall_ids = [np.array([mujoco.mj_name2id(bare, obj, f"wall{w}") for w in range(len(phys.nominal_walls))])
+                for obj in (mujoco.mjtObj.mjOBJ_BODY, mujoco.mjtObj.mjOBJ_GEOM)]
+    models, by_episode = [], {(PAYLOAD_MASS, phys.nominal_walls.tobytes()): bare}
+    for t, (rows, masses, walls) in enumerate(calls):
         for k in range(phys.K):
             i = t * phys.K + k
             mujoco.mj_setState(bare, data, rows[k], spec)
@@ -58,11 +61,12 @@ def _replay_inputs(phys, calls):
             warm0[i] = data.qacc_warmstart
             mujoco.mj_getState(bare, data, control[i, 0], ctrl_spec)
             control[i, 1:] = control[i, 0]
-            mass = float(masses[k])
-            if mass not in by_mass:
-                by_mass[mass] = copy.copy(bare)
-                set_model_payload_mass(by_mass[mass], bare, payload, mass, data)
-            models.append(by_mass[mass])
+            key = (float(masses[k]), walls[k].tobytes())
+            if key not in by_episode:
+                by_episode[key] = m = copy.copy(bare)
+                set_model_walls(m, walls[k], *wall_ids)
+                set_model_payload_mass(m, bare, payload, key[0], data)
+            models.append(by_episode[key])
     return models, data, state0, warm0, control, int(ctrl_spec)
 
 
@@ -76,7 +80,7 @@ def bench_env(scenario: str = "maze", num_envs: int = 16, steps: int = 100, seed
     with ``mujoco.rollout``, one thread: every (control step, env) from the state it started from
     (qpos, qvel, solver warm start; after any episode reset), with the tracker targets and grasp
     flags it applied held for its ``substeps`` physics steps, on the MJCF's model at that env's
-    payload mass; inputs are built before timing and no outputs are recorded. Episode resets,
+    payload mass and walls; inputs are built before timing and no outputs are recorded. Episode resets,
     observations, rows, the env's floor-contact sensor and the recording of the env's physics
     calls (a state-row copy per step) count as env time. A warm-up step before timing loads the
     numba kernels. ``ratio_cpu`` is the same ratio from this thread's CPU time (both parts run
@@ -122,10 +126,11 @@ def bench_env(scenario: str = "maze", num_envs: int = 16, steps: int = 100, seed
 
 
 def bench_scripted(episodes: int = 20, scenarios=None, seed: int = 0, num_envs: int = 10) -> dict:
-    """Success rate of the scripted reference controller per scenario (first `episodes` episodes)."""
+    """Success rate of the scripted reference controller per scenario (first `episodes` episodes;
+    layouts drawn from the evaluation stream, EnvConfig's layout_spread)."""
     out = {}
     for name in scenarios or list(SCENARIOS):
-        env = BatchEnv(EnvConfig(name), num_envs=min(num_envs, episodes), seed=seed)
+        env = BatchEnv(EnvConfig(name), num_envs=min(num_envs, episodes), seed=seed, layout_purpose="eval")
         env.reset()
         eps = []
         while len(eps) < episodes:
