@@ -1,4 +1,5 @@
-"""Like-for-like mechanism metrics, the direct TALO step, the Joint+CBF ablation
+"""Like-for-like mechanism metrics (ratios against the update's start, the local
+claim's A/B), the direct TALO step, dense oblique trees, the Joint+CBF ablation
 and HAPPO's per-update carrier order (common/algos/methods.py)."""
 from __future__ import annotations
 
@@ -9,7 +10,9 @@ import torch
 from common.algos import AlgoConfig, make_method
 from common.algos.registry import ALL_METHODS, METHODS, method_spec
 from common.algos.synthetic import BanditTask, collect
-from common.algos.talo import cosine, flat_grad, talo_gap, talo_project
+from common.algos.methods import gap_summary
+from common.algos.talo import cosine, flat_grad, talo_gap, talo_project, unflatten_like
+from common.policy.proposal import proposal_log_prob
 from common.shield.qp import solve_cbf_qp
 
 OBS = 6
@@ -35,6 +38,22 @@ def surrogates(m, mb, tau=TAU, kappa=KAPPA):
     a_st = m._tree_actions(mb, tau, grad=True)
     log_ratio = m._log_ratio(mb, m._center(mb, a_st, kappa), m._log_std())
     return m._surrogates(mb, log_ratio)
+
+
+def start_surrogates(m, mb, tau=TAU, kappa=KAPPA):
+    """The diagnostics' surrogates at the current parameters when they are the update's
+    start: the ratio against the forward itself (exactly 1)."""
+    a_st = m._tree_actions(mb, tau, grad=True)
+    logp = proposal_log_prob(m._center(mb, a_st, kappa), m._log_std(), mb.a_prop)
+    return m._surrogates(mb, m._ratio_against(mb, logp, logp.detach()))
+
+
+def lagged_batch(m, seed=0):
+    """A batch its method is two updates past (the behaviour policy lags the learner)."""
+    batch = small_batch(m, seed=seed)
+    for k in range(2):
+        m.update(small_batch(m, seed=100 + k), 0.5)
+    return batch
 
 
 def first_minibatch(m, batch):
@@ -74,28 +93,67 @@ def test_registry_has_the_ablation_arm():
                                   ("joint_cbf", "happo")])
 def test_w_gap_first_is_measured_at_the_same_point(pair):
     """Same batch, same initial parameters: a joint (TALO) and a sequential method
-    report the same W_gap / cos on the first minibatch, before any step."""
+    report the same W_gap / cos on the first minibatch, before any step, with the
+    ratios against the update's start (exactly 1 there)."""
     a, b, ref = (make_method(n, small_cfg(), OBS, 0) for n in pair + pair[:1])
     torch.testing.assert_close(flat(a), flat(b), rtol=0, atol=0)
     batch = small_batch(a)
     mb = first_minibatch(ref, batch)
     s = ref.actor_settings(0.5)
-    L, team = surrogates(ref, mb, tau=s["tau"], kappa=s["kappa"])
+    L, team = start_surrogates(ref, mb, tau=s["tau"], kappa=s["kappa"])
     g_ind, g_team, w_ref, _ = talo_gap(L, team, ref.groups, with_hvp=False)
     da, db = a.update(batch, 0.5), b.update(batch, 0.5)
     for d in (da, db):
         assert d["w_gap_first"] == pytest.approx(float(w_ref), rel=1e-6, abs=1e-12)
         assert d["cos_ind_team_first"] == pytest.approx(cosine(g_ind, g_team), abs=1e-6)
-        assert d["logratio_at_start"] < 1e-5
+        assert d["logratio_at_start"] < 1e-5    # collected by these very parameters
     if a.uses_sail:
         # SAIL couples the carriers: the gap is there before any step
         assert float(w_ref) > 1e-6
     else:
-        # identity center, on-policy: rho = 1 and L_team's gradient is sum_i grad rho_i,
-        # so g_team = g_ind and W_gap is 0 up to rounding on the first minibatch
-        assert float(w_ref) < 1e-10
-    # later minibatches are off-policy: the mean is over steps taken
+        # identity center at ratio 1: L_team's gradient is sum_i grad rho_i = g_ind
+        assert float(w_ref) == 0.0 and da["w_gap_first"] == db["w_gap_first"] == 0.0
+    # later minibatches are off the start point: the mean is over steps taken
     assert da["w_gap_mean"] > da["w_gap_first"] and db["w_gap_mean"] > db["w_gap_first"]
+
+
+@pytest.mark.parametrize("name", ALL_METHODS)
+def test_w_gap_first_is_exactly_zero_at_the_update_start_whatever_the_lag(name):
+    """The diagnostics divide by the policy at the update's start, not by the behaviour
+    policy: on a batch the learner is two updates past (ratios against the behaviour
+    policy far from 1) the first minibatch still sits at ratio 1, so W_gap is exactly 0
+    there for every method without SAIL's coupling, and grows over the epochs."""
+    m = make_method(name, small_cfg(), OBS, 0)
+    d = m.update(lagged_batch(m), 0.5)
+    assert d["logratio_at_start"] > 1e-3                     # the lag is real
+    if method_spec(name).uses_sail:
+        assert d["w_gap_first"] > 1e-6
+    else:
+        assert d["w_gap_first"] == 0.0
+        assert d["cos_ind_team_first"] == pytest.approx(1.0, abs=1e-6)   # g_team = g_ind
+    n = m.cfg.epochs * m.cfg.minibatches
+    assert [d[f"w_gap_mb{k}"] for k in range(n)][0] == d["w_gap_first"] and f"w_gap_mb{n}" not in d
+    assert all(d[f"w_gap_mb{k}"] > 0 for k in range(1, n))
+    assert d["w_gap_median"] > 0 and d["w_gap_geomean"] > 0
+    for key in ("w_gap_first", "w_gap_median", "w_gap_geomean", "w_gap_mean", "cos_ind_team_median",
+                "cos_ind_team_first", "cos_ind_team_mean", "ab_w_before", "ab_w_talo", "ab_w_ind"):
+        assert np.isfinite(d[key]), key
+
+
+def test_the_ppo_surrogate_keeps_the_behaviour_ratio():
+    """Only the diagnostics change reference: on a lagged batch the step taken is the one
+    the behaviour-ratio surrogates give (Joint+CBF, direct: delta = eta (g_ind + entropy))."""
+    m = make_method("joint_cbf", small_cfg(talo_step="direct"), OBS, 0)
+    batch = lagged_batch(m)
+    m.policy.double()
+    mb, _ = m._prepare(batch)
+    L, team = surrogates(m, mb)      # ratios against the stored logp (the behaviour policy)
+    g = talo_gap(L, team, m.groups, separable=True, with_hvp=False)[0] \
+        + m.cfg.ent_coef * flat_grad(m._entropy().sum(), m.actor_params)
+    before = flat(m)
+    _, gap = m._joint_step(mb, TAU, KAPPA)
+    torch.testing.assert_close(flat(m) - before, m.cfg.talo_eta * g, rtol=1e-9, atol=1e-12)
+    assert gap["w_gap"] == 0.0       # while the diagnostics were taken at ratio 1
 
 
 def test_w_gap_mean_is_measured_before_each_step():
@@ -104,10 +162,89 @@ def test_w_gap_mean_is_measured_before_each_step():
     batch = small_batch(m)
     mb = first_minibatch(ref, batch)
     s = ref.actor_settings(0.5)
-    L, team = surrogates(ref, mb, tau=s["tau"], kappa=s["kappa"])
+    L, team = start_surrogates(ref, mb, tau=s["tau"], kappa=s["kappa"])
     w_ref = float(talo_gap(L, team, ref.groups, with_hvp=False)[2])
     d = m.update(batch, 0.5)
     assert d["w_gap_mean"] == pytest.approx(w_ref, rel=1e-6) == d["w_gap_first"]
+    assert np.isnan(d["w_gap_geomean"])          # no minibatch after the first
+
+
+def test_gap_summary_medians_and_log_means():
+    w = [0.0, 1e-4, 1e-2, 1.0, 1e3]              # a heavy tail: the mean is the outlier's
+    cos = [1.0, 0.9, 0.5, -0.2, 0.8]
+    out = gap_summary(w, cos)
+    assert out["w_gap_first"] == 0.0 and out["w_gap_last"] == 1e3
+    assert out["w_gap_median"] == 1e-2 and out["w_gap_mean"] == pytest.approx(sum(w) / 5)
+    assert out["w_gap_geomean"] == pytest.approx((1e-4 * 1e-2 * 1.0 * 1e3) ** 0.25)   # = 0.1
+    assert out["cos_ind_team_median"] == 0.8 and out["cos_ind_team_mean"] == pytest.approx(0.6)
+    assert [out[f"w_gap_mb{k}"] for k in range(5)] == w
+    assert [out[f"cos_ind_team_mb{k}"] for k in range(5)] == cos
+    assert out["w_gap"] == out["w_gap_mean"] and out["cos_ind_team"] == out["cos_ind_team_mean"]
+    assert gap_summary([1.0, 0.0, 2.0], [1.0] * 3)["w_gap_geomean"] == 0.0   # a step at W = 0
+
+
+# --------------------------------------------------------------------------- the local claim's A/B
+
+@pytest.mark.parametrize("name", ["sage", "happo_cbf"])
+def test_local_ab_is_deterministic_and_leaves_the_parameters(name):
+    """The A/B on a frozen minibatch: the same numbers twice, the parameters untouched,
+    and each arm equals W_gap recomputed by hand at theta + length g / ||g||."""
+    m = make_method(name, small_cfg(), OBS, 0)
+    batch = lagged_batch(m)
+    m.policy.double()
+    mb, _ = m._prepare(batch)
+    mb.logp_start = m._start_log_prob(mb, TAU, KAPPA)
+    theta0 = flat(m)
+    with torch.no_grad():               # move off the start, as the last minibatch of an update is
+        for p in m.actor_params:
+            p.add_(0.02 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel()),
+                                      dtype=p.dtype))
+    at = flat(m)
+    a_st, _, _, start = m._start_point(mb, TAU, KAPPA)
+    g_ind, _, w0, grad_w = m._gap(a_st, start, with_hvp=True)
+    m.cfg.talo_sigma = 2.0 * abs(float(grad_w @ g_ind)) / float(w0) + 1.0   # forces Delta_gap > 0
+    length = 0.05
+    first, second = m.local_ab(mb, TAU, KAPPA, length), m.local_ab(mb, TAU, KAPPA, length)
+    assert first == second
+    torch.testing.assert_close(flat(m), at, rtol=0, atol=0)
+    assert first["ab_step"] == length and first["ab_w_before"] > 0 and first["ab_corrected"] == 1.0
+    assert first["ab_ratio"] == pytest.approx(first["ab_w_talo"] / first["ab_w_ind"])
+
+    def w_here():
+        a_st, _, _, start = m._start_point(mb, TAU, KAPPA)
+        return m._gap(a_st, start, with_hvp=False)
+
+    g_talo, _ = talo_project(g_ind, grad_w, w0, m.cfg.talo_sigma, m.cfg.talo_eps)
+    assert float(w0) == first["ab_w_before"]
+    for g, key in ((g_talo, "ab_w_talo"), (g_ind, "ab_w_ind")):
+        with torch.no_grad():
+            for p, d in zip(m.actor_params, unflatten_like(at + length * g / g.norm(), m.actor_params)):
+                p.copy_(d)
+        assert float(w_here()[2]) == pytest.approx(first[key], rel=1e-12)
+    # at the start point itself the identity center has nothing to regulate
+    with torch.no_grad():
+        for p, d in zip(m.actor_params, unflatten_like(theta0, m.actor_params)):
+            p.copy_(d)
+    if not m.uses_sail:
+        at_start = m.local_ab(mb, TAU, KAPPA, length)
+        assert at_start["ab_w_before"] == 0.0 and at_start["ab_corrected"] == 0.0
+        assert at_start["ab_w_talo"] == at_start["ab_w_ind"] and at_start["ab_ratio"] == 1.0
+
+
+def test_update_logs_the_ab_on_its_last_minibatch():
+    m = make_method("talo_cbf", small_cfg(), OBS, 0)
+    d = m.update(lagged_batch(m), 0.5)
+    for key in ("ab_w_before", "ab_w_talo", "ab_w_ind", "ab_ratio", "ab_corrected", "ab_step"):
+        assert np.isfinite(d[key]), key
+    assert d["ab_step"] > 0        # the length of the method's own last step (mech_ab_step = 0)
+    fixed = make_method("talo_cbf", small_cfg(mech_ab_step=0.01), OBS, 0)
+    assert fixed.update(small_batch(fixed), 0.5)["ab_step"] == 0.01
+    off = make_method("talo_cbf", small_cfg(mech_ab_every=0), OBS, 0)
+    assert "ab_ratio" not in off.update(small_batch(off), 0.5)
+    with pytest.raises(ValueError):
+        AlgoConfig(mech_ab_step=-1.0)
+    with pytest.raises(ValueError):
+        AlgoConfig(mech_ab_every=-1)
 
 
 # --------------------------------------------------------------------------- direct TALO step
@@ -131,11 +268,12 @@ def test_direct_talo_step_meets_descent_condition():
     m.cfg.talo_sigma = sigma
     # the entropy gradient (log_std only) at theta_0
     g_ent = m.cfg.ent_coef * flat_grad(m._entropy().sum(), m.actor_params)
+    w_start = float(talo_gap(*start_surrogates(m, mb), m.groups, with_hvp=False)[2])
     before = flat(m)
     stats, gap = m._joint_step(mb, TAU, KAPPA)
     delta = flat(m) - before
     assert stats["delta_gap"] > 0 and stats["talo_corrected"] == 1.0
-    assert gap["w_gap"] == pytest.approx(float(w0), rel=1e-12)
+    assert gap["w_gap"] == pytest.approx(w_start, rel=1e-12)    # the diagnostics: ratio 1 at theta_0
     eta = m.cfg.talo_eta
     assert float(grad_w @ delta) <= -sigma * float(w0) * eta + 1e-8
     assert stats["talo_condition_met"] == 1.0 and stats["talo_step_decreases_gap"] == 1.0
@@ -153,6 +291,49 @@ def test_direct_talo_update_logs_condition_met():
         assert np.isfinite(d[key]), key
     adam = make_method("sage", small_cfg(), OBS, 0)
     assert 0.0 <= adam.update(small_batch(adam), 0.5)["talo_condition_met"] <= 1.0
+
+
+@pytest.mark.parametrize("name", ["talo_cbf", "sage", "joint_cbf"])
+@pytest.mark.parametrize("step", ["adam", "direct"])
+def test_both_talo_steps_are_selectable(name, step):
+    """The joint methods apply g per ``talo_step``; the direct step (the paper's
+    theta <- theta + eta g_TALO) meets Eq. (talo_condition) on every minibatch."""
+    m = make_method(name, small_cfg(talo_step=step), OBS, 0)
+    assert m.cfg.talo_step == step
+    before = flat(m)
+    d = m.update(lagged_batch(m), 0.5)
+    assert not torch.equal(before, flat(m))
+    if m.uses_talo:
+        assert (d["talo_condition_met"] == 1.0) if step == "direct" else (0.0 <= d["talo_condition_met"] <= 1.0)
+    else:
+        assert "talo_condition_met" not in d
+    assert AlgoConfig().talo_step == "adam"    # the default is not changed silently: protocols pin it
+
+
+@pytest.mark.parametrize("name", ALL_METHODS)
+def test_dense_oblique_trees_train_with_every_method(name):
+    """split_k = 0: every split vector is dense over the observation and routes by
+    w_k.o / ||w_k|| (Eq. hard_gate) in what the actors run; every method trains on it."""
+    from common.policy.tree_torch import TeamPolicy
+
+    m = make_method(name, small_cfg(split_k=0, talo_step="direct"), OBS, 0)
+    d = m.update(lagged_batch(m), 0.5)
+    assert all(np.isfinite(v) for k, v in d.items() if not k.startswith("ab_ratio")), name
+    params = m.policy_params()
+    for i in range(3):
+        W = params[f"carrier_{i}/W"]
+        assert (W != 0).all() and W.shape[1] == OBS                   # oblique: all features
+    # the split parameters moved (dense straight-through gradient reaches every weight)
+    W_now = torch.cat([t.W.detach().reshape(-1) for t in m.trees])
+    W_init = torch.cat([t.W.detach().reshape(-1) for t in make_method(name, small_cfg(split_k=0), OBS, 0).trees])
+    assert (W_now != W_init).float().mean() > 0.5
+    # the exported (actor) forward routes as the learner does, on the normalized vectors
+    obs = torch.randn(32, 3, OBS, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        torch.testing.assert_close(TeamPolicy.from_params(params).double()(obs.double()).action,
+                                   m.policy.double()(obs.double()).action, rtol=1e-5, atol=1e-6)
+    sparse = make_method(name, small_cfg(split_k=1), OBS, 0).policy_params()["carrier_0/W"]
+    assert ((sparse != 0).sum(axis=1) == 1).all()                 # the contrast: k = 1 is axis-aligned
 
 
 # --------------------------------------------------------------------------- Joint+CBF

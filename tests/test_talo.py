@@ -10,6 +10,7 @@ from hypothesis.extra.numpy import arrays
 
 from common.algos.talo import (
     cosine,
+    equal_length_ab,
     individual_gradient,
     talo_direction,
     talo_gap,
@@ -170,6 +171,66 @@ def test_talo_step_decreases_gap_to_first_order():
     dw_ind = (w_after(res.g_ind, step) - res.w_gap) / step
     assert dw_talo < dw_ind
     assert dw_talo <= -1.0 * res.w_gap * 0.99  # descent condition, first order
+
+
+def hand_model():
+    """Two scalar blocks, L_1 = theta_1^2 / 2, L_2 = theta_2^2 / 2, L_team = theta_1 theta_2:
+    g_ind = (theta_1, theta_2), g_team = (theta_2, theta_1), W_gap = (theta_1 - theta_2)^2."""
+    def gap_at(theta):
+        t1, t2 = (theta[0:1].clone().requires_grad_(), theta[1:2].clone().requires_grad_())
+        L = [0.5 * t1.pow(2).sum(), 0.5 * t2.pow(2).sum()]
+        return talo_gap(L, (t1 * t2).sum(), [[t1], [t2]])
+    return gap_at
+
+
+def test_equal_length_ab_agrees_with_a_hand_computation():
+    """At theta = (1, 0), sigma = 1: W = 1, grad W = (2, -2), Delta = 2 + 1 = 3,
+    g_TALO = (1, 0) - 3/8 (2, -2) = (1/4, 3/4). A step of length h along g_ind gives
+    W = (1 + h)^2; along g_TALO (unit (1, 3)/sqrt(10)), W = (1 - 2h/sqrt(10))^2."""
+    gap_at = hand_model()
+    theta = torch.tensor([1.0, 0.0], dtype=F64)
+    g_ind, g_team, w0, grad_w = gap_at(theta)
+    torch.testing.assert_close(g_ind, torch.tensor([1.0, 0.0], dtype=F64))
+    torch.testing.assert_close(g_team, torch.tensor([0.0, 1.0], dtype=F64))
+    assert float(w0) == 1.0
+    torch.testing.assert_close(grad_w, torch.tensor([2.0, -2.0], dtype=F64))
+    g_talo, delta = talo_project(g_ind, grad_w, w0, sigma=1.0, eps=0.0)
+    assert delta == 3.0
+    torch.testing.assert_close(g_talo, torch.tensor([0.25, 0.75], dtype=F64))
+    h = 0.5
+    w_talo, w_ind = equal_length_ab(lambda d: float(gap_at(theta + d)[2]), float(w0), g_talo, g_ind, h)
+    assert w_ind == pytest.approx((1 + h) ** 2, rel=1e-14)
+    assert w_talo == pytest.approx((1 - 2 * h / 10 ** 0.5) ** 2, rel=1e-14)
+    # no step, no direction, no correction
+    assert equal_length_ab(lambda d: 99.0, 1.0, g_talo, g_ind, 0.0) == (1.0, 1.0)
+    assert equal_length_ab(lambda d: 99.0, 1.0, torch.zeros(2, dtype=F64), g_ind, h) == (1.0, 99.0)
+    calls = []
+    assert equal_length_ab(lambda d: calls.append(d) or 7.0, 1.0, g_ind.clone(), g_ind, h) == (7.0, 7.0)
+    assert len(calls) == 1
+    with pytest.raises(ValueError):
+        equal_length_ab(lambda d: 0.0, 1.0, g_talo, g_ind, -1.0)
+    with pytest.raises(ValueError):
+        equal_length_ab(lambda d: 0.0, 1.0, g_talo, g_ind, float("nan"))
+
+
+def test_equal_length_ab_matches_the_first_order_rates_on_a_coupled_model():
+    """Finite differences: for a short step h the A/B's two W_gap values move from W at
+    the rates grad W . g / ||g|| of their directions (Eq. talo_condition's left side)."""
+    thetas, surrogates = coupled_model(seed=4)
+    L, team = surrogates(thetas)
+    res = talo_direction(L, team, [[t] for t in thetas], sigma=1.0, eps=1e-8)
+    assert res.corrected
+
+    def w_at(displacement):
+        return w_value([(t.detach() + d).requires_grad_()
+                        for t, d in zip(thetas, unflatten_like(displacement, thetas))], surrogates)
+
+    for h in (1e-4, 1e-5):
+        w_talo, w_ind = equal_length_ab(w_at, res.w_gap, res.g_talo, res.g_ind, h)
+        for w, g in ((w_talo, res.g_talo), (w_ind, res.g_ind)):
+            rate = float(res.grad_w @ g / g.norm())
+            assert (w - res.w_gap) / h == pytest.approx(rate, rel=50 * h, abs=1e-9)   # O(h) second-order term
+        assert w_talo < w_ind
 
 
 def test_cosine_and_errors():

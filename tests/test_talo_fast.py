@@ -87,7 +87,8 @@ def test_one_graph_gap_equals_two_graph_gap_on_the_learner(name):
     with torch.no_grad():   # off-policy start point
         for p in m.actor_params:
             p.add_(0.05 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel()), dtype=F64))
-    _, _, _, L, team = m._start_point(mb, 0.5, 3.0)
+    _, _, behaviour, _ = m._start_point(mb, 0.5, 3.0)
+    L, team = behaviour.L_ind, behaviour.L_team
     new = talo_gap(L, team, m.groups, separable=not m.uses_sail)
     old = two_graph_gap(L, team, m.groups, separable=not m.uses_sail)
     assert float(old[2]) > 1e-8
@@ -105,7 +106,8 @@ def test_coupled_blocks_through_a_st_equal_one_backward_per_carrier(name, with_h
     with torch.no_grad():   # off-policy start point: W_gap > 0
         for p in m.actor_params:
             p.add_(0.05 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel()), dtype=F64))
-    a_st, _, _, L, team = m._start_point(mb, 0.5, 3.0)
+    a_st, _, behaviour, _ = m._start_point(mb, 0.5, 3.0)
+    L, team = behaviour.L_ind, behaviour.L_team
     new = talo_gap(L, team, m.groups, with_hvp=with_hvp, through=m._through(a_st))
     old = talo_gap(L, team, m.groups, with_hvp=with_hvp)
     assert float(old[2]) > 1e-8 and old[0].abs().min() < old[0].abs().max()
@@ -119,7 +121,8 @@ def test_coupled_blocks_through_a_st_equal_one_backward_per_carrier(name, with_h
 
 def test_through_rejects_slices_that_do_not_tile_the_intermediate():
     m, mb = prepared_double("sage")
-    a_st, _, _, L, team = m._start_point(mb, 0.5, 3.0)
+    a_st, _, behaviour, _ = m._start_point(mb, 0.5, 3.0)
+    L, team = behaviour.L_ind, behaviour.L_team
     via = [[t.W, t.b, t.K, t.beta] for t in m.trees]
     for slices in ([slice(0, 3), slice(3, 6), slice(6, 8)], [slice(0, 3), slice(6, 9), slice(3, 6)]):
         with pytest.raises(ValueError, match="tile"):

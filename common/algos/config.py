@@ -52,6 +52,11 @@ class AlgoConfig:
     # learner diagnostics: QP solves of a_ST (correction_st) on this many evenly
     # spaced samples per update (0: off)
     diag_qp_samples: int = bounded(256, ge=0, le=65536)
+    # the local claim's A/B (Method.local_ab): every mech_ab_every-th update (0: off), on
+    # its last minibatch, W_gap after a step of length mech_ab_step along g_TALO and along
+    # g_ind (0.0: the length of the step the method itself took on that minibatch)
+    mech_ab_every: int = bounded(1, ge=0, le=10**6)
+    mech_ab_step: float = bounded(0.0, ge=0.0, le=10.0)
     # schedules over training progress p in [0, 1] (geometric interpolation)
     tau_start: float = bounded(1.0, gt=0.0, le=100.0)           # ST backward temperature, Eq. (st_gate)
     tau_end: float = bounded(0.1, gt=0.0, le=100.0)

@@ -27,11 +27,24 @@ Adam after global norm clipping, entropy gradient added after the projection;
 
 Mechanism metrics are measured the same way for every method: W_gap and
 cos(g_ind, g_team) (Eq. talo_gap, no HVP needed) on every minibatch, at the
-parameters before that minibatch's step: ``*_first`` on the first minibatch of
-the update (before any step), ``*_mean`` over all minibatches. The sequential
-step reuses that measurement's forward and g_ind (its first carrier, at M = 1,
-steps along block i of g_ind), which pays for most of it. See
-docs/interfaces.md for the full list of ``update`` diagnostics.
+parameters before that minibatch's step, with the surrogates' ratios taken
+against the policy at the *update's start* (``rho_i = pi_theta / pi_theta_start``),
+not against the behaviour policy that collected the batch. The PPO surrogates
+the methods step along keep the behaviour policy's ratio (that is the
+algorithm); only the diagnostics change reference. So the first minibatch is at
+ratio 1 for every method whatever the policy lag, W_gap is exactly 0 there
+without SAIL's coupling (identity center: g_team = g_ind), and its growth over
+the update's epochs is what TALO regulates. Summaries per update: ``*_first``,
+``*_median``, ``w_gap_geomean`` (exp of the mean log over the minibatches after
+the first: the heavy-tailed W_gap's log-mean, in W's units), ``*_mean``, and
+every minibatch's value (``w_gap_mb{m}``, ``cos_ind_team_mb{m}``). The
+sequential step reuses that measurement's forward (and its SAIL solve).
+
+The local claim of Eq. (talo_condition), measured for every method once per
+update (``ab_*``, ``Method.local_ab``): on the update's last minibatch, frozen, at
+the parameters before its step, W_gap after a step of equal length along
+g_TALO and along g_ind. See docs/interfaces.md for the full list of ``update``
+diagnostics.
 
 The centralized critic (common/algos/critic.py) is trained after the actors
 on every minibatch, with its own Adam.
@@ -39,6 +52,7 @@ on every minibatch, with its own Adam.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,7 +63,8 @@ from common.algos.adam import Adam
 from common.algos.config import AlgoConfig, kappa_schedule, tau_schedule
 from common.algos.critic import TeamCritic, ValueNormalizer, compute_gae, next_values
 from common.algos.registry import method_spec
-from common.algos.talo import Through, cosine, flat_grad, talo_gap, talo_project, unflatten_like
+from common.algos.talo import (Through, cosine, equal_length_ab, flat_grad, talo_gap, talo_project,
+                               unflatten_like)
 from common.policy.proposal import proposal_entropy, proposal_log_prob
 from common.policy.sail import SailConfig, SailStep, sail_center_implicit, sail_project, sail_step
 from common.policy.tree import TreeConfig
@@ -83,22 +98,34 @@ class Minibatch:
     adv: Tensor        # [B]
     ret: Tensor        # [B] normalized returns (critic targets)
     active: Tensor     # [B, N] bool: robot-controlled carrier blocks
+    # log pi_theta_start(a_prop) [B, N] at the update's start parameters: the mechanism
+    # diagnostics' reference. None: the current parameters are the start (the update's
+    # first minibatch, or a caller outside ``update``), so the reference is the forward itself
+    logp_start: Tensor | None = None
 
     def index(self, idx: Tensor) -> "Minibatch":
         """The rows ``idx`` (a 1-D index tensor) of every field; index_select is
         the same gather as ``v[idx]`` at a third of its cost for the row blocks."""
-        return Minibatch(**{k: v.index_select(0, idx) for k, v in self.__dict__.items()})
+        return Minibatch(**{k: None if v is None else v.index_select(0, idx) for k, v in self.__dict__.items()})
+
+
+@dataclass
+class Surrogates:
+    """Eq. (ppo_surrogates) on one forward, with the ratio against one reference policy."""
+    log_ratio: Tensor   # [B, N], 0 on human blocks
+    L_ind: list[Tensor]   # [L_i], each with the forward's graph
+    L_team: Tensor
 
 
 @dataclass
 class StartPoint:
-    """What the W_gap diagnostics computed at a minibatch's start parameters
-    (detached), for the sequential step to reuse instead of recomputing."""
-    a_st: Tensor        # [B, D] nominal actions
+    """What the W_gap diagnostics computed at a minibatch's start parameters, for the
+    sequential step to reuse instead of recomputing: the forward (and its SAIL solve)
+    and the behaviour-ratio surrogates on its graph (the first carrier's, at M = 1, is
+    HAPPO's surrogate for that carrier)."""
+    a_st: Tensor        # [B, D] nominal actions (detached)
     step: SailStep | None   # SAIL's implicit step there (None: no implicit SAIL center)
-    log_ratio: Tensor   # [B, N]
-    L_ind: Tensor       # [N] surrogate values L_i
-    g_ind: Tensor       # flat g_ind
+    behaviour: Surrogates
 
 
 class Method:
@@ -168,13 +195,22 @@ class Method:
                 sums[k] = sums.get(k, 0.0) + float(v)
                 counts[k] = counts.get(k, 0) + 1
 
+        # the diagnostics' reference: the policy at the update's start, on every sample
+        data.logp_start = self._start_log_prob(data, tau, kappa)
+        batch_diag["logratio_at_start"] = self._logratio_at_start(data)
         order: list[int] | None = None
         self.last_happo_orders = []
+        w_trace, cos_trace = [], []
+        ab = self.cfg.mech_ab_every > 0 and self.updates % self.cfg.mech_ab_every == 0
         for epoch in range(self.cfg.epochs):
             perm = torch.randperm(B, generator=self.gen)
             for j, idx in enumerate(torch.tensor_split(perm, n_mb)):
                 mb = data.index(idx)
-                before = self._flat_actor_params()
+                if epoch == 0 and j == 0:
+                    # at the start parameters: the forward is its own reference (ratio exactly 1,
+                    # not 1 +- the rounding of a differently shaped batch's forward)
+                    mb.logp_start = None
+                before = self._actor_values()
                 if self.joint_step:
                     stats, gap = self._joint_step(mb, tau, kappa)
                 else:
@@ -184,24 +220,47 @@ class Method:
                     gap, start = self._gap_diagnostics(mb, tau, kappa)
                     stats = self._happo_step(mb, tau, kappa, order=order, start=start)
                     self.last_happo_orders.append(list(order))
-                stats["actor_step_norm"] = float((self._flat_actor_params() - before).norm())
+                step_norm = float(torch.cat([(p.detach() - b).double().reshape(-1)
+                                             for p, b in zip(self.actor_params, before)]).norm())
+                stats["actor_step_norm"] = step_norm
                 # W_gap, cos(g_ind, g_team): measured at the parameters before this minibatch's step
-                if epoch == 0 and j == 0:
-                    log({"w_gap_first": gap["w_gap"], "cos_ind_team_first": gap["cos_ind_team"],
-                         "logratio_at_start": gap["logratio_at_start"]})
-                log({"w_gap_mean": gap["w_gap"], "cos_ind_team_mean": gap["cos_ind_team"]})
+                w_trace.append(gap["w_gap"])
+                cos_trace.append(gap["cos_ind_team"])
+                if ab and epoch == self.cfg.epochs - 1 and j == n_mb - 1:
+                    length = self.cfg.mech_ab_step or step_norm
+                    log(self.local_ab(mb, tau, kappa, length, at=before))
                 log(stats)
                 log(self._critic_step(mb))
         self.updates += 1
         diag = {k: sums[k] / counts[k] for k in sums}
-        # the old keys (sage/report.py training curves): the like-for-like means
-        diag["w_gap"], diag["cos_ind_team"] = diag["w_gap_mean"], diag["cos_ind_team_mean"]
+        diag.update(gap_summary(w_trace, cos_trace))
         diag.update(batch_diag)
         diag.update(tau=tau, kappa=kappa, updates=float(self.updates))
         return diag
 
-    def _flat_actor_params(self) -> Tensor:
-        return torch.cat([p.detach().reshape(-1) for p in self.actor_params]).double()
+    def _actor_values(self) -> list[Tensor]:
+        return [p.detach().clone() for p in self.actor_params]
+
+    def _set_actor_values(self, values: list[Tensor]) -> None:
+        with torch.no_grad():
+            for p, v in zip(self.actor_params, values):
+                p.copy_(v)
+
+    def _start_log_prob(self, data: Minibatch, tau: float, kappa: float) -> Tensor:
+        """log pi_theta(a_prop) [B, N] at the current parameters, without a graph: the
+        snapshot of the update's start policy that the diagnostics' ratios divide by."""
+        with torch.no_grad():
+            a_st = self._tree_actions(data, tau, grad=False)
+            center = self._center(data, a_st, kappa, step=self._sail_step(data, a_st, kappa))
+            return proposal_log_prob(center, self._log_std(), data.a_prop).detach()
+
+    @staticmethod
+    def _logratio_at_start(data: Minibatch) -> float:
+        """Mean |log pi_theta_start - log pi_behaviour| over the robot blocks: what the
+        policy lag (and actor/learner rounding) put between the two references."""
+        if not bool(data.active.any()):
+            return 0.0
+        return float((data.logp_start - data.logp_old)[data.active].abs().mean())
 
     # ------------------------------------------------------------------ batch preparation
 
@@ -385,9 +444,13 @@ class Method:
                                     self.sail_config, step=step)
 
     def _log_ratio(self, mb: Minibatch, center: Tensor, log_std: Tensor) -> Tensor:
-        """Per-carrier log-likelihood ratio at the stored a_prop [B, N]; 0 on human blocks."""
-        logp = proposal_log_prob(center, log_std, mb.a_prop)
-        return torch.where(mb.active, logp - mb.logp_old, torch.zeros_like(logp))
+        """Per-carrier log-likelihood ratio against the behaviour policy at the stored
+        a_prop [B, N]; 0 on human blocks."""
+        return self._ratio_against(mb, proposal_log_prob(center, log_std, mb.a_prop), mb.logp_old)
+
+    @staticmethod
+    def _ratio_against(mb: Minibatch, logp: Tensor, reference: Tensor) -> Tensor:
+        return torch.where(mb.active, logp - reference, torch.zeros_like(logp))
 
     def _clipped(self, ratio: Tensor, adv: Tensor) -> Tensor:
         """l(rho, A) = min(rho A, clip(rho, 1-eps, 1+eps) A) (Eq. ppo_surrogates)."""
@@ -416,40 +479,85 @@ class Method:
     # ------------------------------------------------------------------ actor updates
 
     def _start_point(self, mb: Minibatch, tau: float, kappa: float):
-        """Graph of the surrogates at the current parameters (all carriers attached):
-        (a_ST, SAIL step or None, log ratios [B, N], [L_i], L_team)."""
+        """One forward at the current parameters (all carriers attached) and the
+        surrogates on it twice: ``behaviour`` (ratio against the behaviour policy: the
+        PPO surrogates the methods step along) and ``start`` (ratio against the update's
+        start policy ``mb.logp_start``: the mechanism diagnostics).
+        Returns (a_ST, SAIL step or None, behaviour, start)."""
         a_st = self._tree_actions(mb, tau, grad=True)
         step = self._sail_step(mb, a_st, kappa)
-        log_ratio = self._log_ratio(mb, self._center(mb, a_st, kappa, step=step), self._log_std())
-        L_ind, L_team = self._surrogates(mb, log_ratio)
-        return a_st, step, log_ratio, L_ind, L_team
+        logp = proposal_log_prob(self._center(mb, a_st, kappa, step=step), self._log_std(), mb.a_prop)
+        behaviour = Surrogates(self._ratio_against(mb, logp, mb.logp_old), *self._surrogates_of(mb, logp, mb.logp_old))
+        reference = logp.detach() if mb.logp_start is None else mb.logp_start
+        start = Surrogates(self._ratio_against(mb, logp, reference), *self._surrogates_of(mb, logp, reference))
+        return a_st, step, behaviour, start
 
-    @staticmethod
-    def _gap_stats(g_ind: Tensor, g_team: Tensor, w_gap, log_ratio: Tensor, active: Tensor) -> dict:
-        return {"w_gap": float(w_gap), "cos_ind_team": cosine(g_ind, g_team),
-                "logratio_at_start": float(log_ratio.detach()[active].abs().mean()) if active.any() else 0.0}
+    def _surrogates_of(self, mb: Minibatch, logp: Tensor, reference: Tensor) -> tuple[list[Tensor], Tensor]:
+        return self._surrogates(mb, self._ratio_against(mb, logp, reference))
+
+    def _gap(self, a_st: Tensor, s: Surrogates, with_hvp: bool):
+        """Eq. (talo_gap) on surrogates ``s`` built on the forward that produced ``a_st``."""
+        return talo_gap(s.L_ind, s.L_team, self.groups, separable=not self.uses_sail,
+                        with_hvp=with_hvp, through=self._through(a_st))
+
+    def _measure_gap(self, a_st: Tensor, start: Surrogates) -> dict[str, float]:
+        """The mechanism diagnostics (Eq. talo_gap, no HVP) on the start-referenced surrogates."""
+        g_ind, g_team, w, _ = self._gap(a_st, start, with_hvp=False)
+        return {"w_gap": float(w), "cos_ind_team": cosine(g_ind, g_team)}
 
     def _gap_diagnostics(self, mb: Minibatch, tau: float, kappa: float):
-        """W_gap and cos(g_ind, g_team) (Eq. talo_gap, no HVP) at the current
-        parameters, for the sequential methods (the joint step measures them
-        itself). Also returns the ``StartPoint``, which the HAPPO step reuses:
-        the forward (saves a SAIL solve) and g_ind (its first carrier's gradient)."""
-        a_st, step, log_ratio, L_ind, L_team = self._start_point(mb, tau, kappa)
-        g_ind, g_team, w, _ = talo_gap(L_ind, L_team, self.groups, separable=not self.uses_sail,
-                                       with_hvp=False, through=self._through(a_st))
-        start = StartPoint(a_st.detach().clone(), step, log_ratio.detach(),
-                           torch.stack(L_ind).detach(), g_ind)
-        return self._gap_stats(g_ind, g_team, w, log_ratio, mb.active), start
+        """W_gap and cos(g_ind, g_team) (Eq. talo_gap, no HVP, ratios against the update's
+        start) at the current parameters, for the sequential methods (the joint step
+        measures them itself). Also returns the ``StartPoint``, which the HAPPO step
+        reuses: the forward (saves a SAIL solve) and its first carrier's surrogate."""
+        a_st, step, behaviour, start = self._start_point(mb, tau, kappa)
+        gap = self._measure_gap(a_st, start)
+        return gap, StartPoint(a_st.detach().clone(), step, behaviour)
+
+    def local_ab(self, mb: Minibatch, tau: float, kappa: float, length: float,
+                 at: list[Tensor] | None = None) -> dict[str, float]:
+        """The local claim of Eq. (talo_condition) as a measurement, the same for every
+        method: on the frozen minibatch ``mb`` at parameters ``at`` (default: the
+        current ones), W_gap (ratios against the update's start, as the diagnostics)
+        after a step of length ``length`` along g_TALO (Eq. talo_projection, this
+        config's sigma and eps) and along g_ind. Leaves the parameters as it found them.
+
+        ``ab_w_before``, ``ab_w_talo``, ``ab_w_ind``, ``ab_ratio`` = ab_w_talo / ab_w_ind
+        (< 1: TALO's direction kept the gap smaller; NaN where ab_w_ind = 0),
+        ``ab_corrected`` (Delta_gap > 0; else g_TALO = g_ind and the ratio is 1) and
+        ``ab_step`` (the length)."""
+        current = self._actor_values()
+        try:
+            if at is not None:
+                self._set_actor_values(at)
+            base = self._actor_values()
+            a_st, _, _, start = self._start_point(mb, tau, kappa)
+            g_ind, _, w0, grad_w = self._gap(a_st, start, with_hvp=True)
+            g_talo, delta = talo_project(g_ind, grad_w, w0, self.cfg.talo_sigma, self.cfg.talo_eps)
+
+            def w_at(displacement: Tensor) -> float:
+                self._set_actor_values([b + d.to(b.dtype) for b, d in
+                                        zip(base, unflatten_like(displacement, self.actor_params))])
+                a_st, _, _, start = self._start_point(mb, tau, kappa)
+                return float(self._gap(a_st, start, with_hvp=False)[2])
+
+            w_talo, w_ind = equal_length_ab(w_at, float(w0), g_talo, g_ind, length)
+        finally:
+            self._set_actor_values(current)
+        return {"ab_w_before": float(w0), "ab_w_talo": w_talo, "ab_w_ind": w_ind,
+                "ab_ratio": w_talo / w_ind if w_ind > 0 else math.nan,
+                "ab_corrected": float(delta > 0.0), "ab_step": float(length)}
 
     def _joint_step(self, mb: Minibatch, tau: float, kappa: float) -> tuple[dict[str, float], dict]:
         """All carriers stepped together: along g_TALO (Eqs. talo_gap .. talo_projection)
         for TALO methods, along g_ind for Joint+CBF; applied per ``cfg.talo_step``.
         Returns (stats, gap stats measured before the step)."""
         cfg = self.cfg
-        a_st, _, log_ratio, L_ind, L_team = self._start_point(mb, tau, kappa)
-        # identity center: L_i depends on theta_i only -> one backward for g_ind
-        g_ind, g_team, w, grad_w = talo_gap(L_ind, L_team, self.groups, separable=not self.uses_sail,
-                                            with_hvp=self.uses_talo, through=self._through(a_st))
+        a_st, _, behaviour, start = self._start_point(mb, tau, kappa)
+        gap = self._measure_gap(a_st, start)
+        log_ratio, L_ind, L_team = behaviour.log_ratio, behaviour.L_ind, behaviour.L_team
+        # the algorithm's gap: ratios against the behaviour policy (Eq. ppo_surrogates)
+        g_ind, g_team, w, grad_w = self._gap(a_st, behaviour, with_hvp=self.uses_talo)
         entropy = self._entropy()
         g_ent = cfg.ent_coef * flat_grad(entropy.sum(), self.actor_params) if cfg.ent_coef > 0 \
             else torch.zeros_like(g_ind)
@@ -485,7 +593,7 @@ class Method:
             policy_loss=-float(sum(L_ind).detach()), team_loss=-float(L_team.detach()),
             entropy=float(entropy.detach().mean()), actor_grad_norm=grad_norm,
         )
-        return stats, self._gap_stats(g_ind, g_team, w, log_ratio, mb.active)
+        return stats, gap
 
     def _talo_condition(self, grad_w: Tensor, w_gap, g_ind: Tensor, g_team: Tensor,
                         before: list[Tensor], direct: bool) -> tuple[float, float, float]:
@@ -541,12 +649,13 @@ class Method:
             active = mb.active[:, i]
             self.actor_opts[i].zero_grad()
             if start is not None and i == order[0]:
-                # M = 1: this carrier's surrogate is L_i at the start point, whose gradient
-                # (block i of g_ind) the diagnostics took already; only the entropy is added
-                log_ratio, surr = start.log_ratio[:, i], start.L_ind[i]
-                grads = unflatten_like(start.g_ind.split(self.group_sizes)[i], self.groups[i])
+                # M = 1: this carrier's surrogate is L_i at the start point, on the
+                # diagnostics' forward; only the entropy is added
+                log_ratio, surr = start.behaviour.log_ratio[:, i].detach(), start.behaviour.L_ind[i]
+                grads = unflatten_like(flat_grad(surr, self.groups[i]), self.groups[i])
                 for p, g in zip(self.groups[i], grads):
                     p.grad = -g                  # ascent on L_i -> descent for Adam
+                surr = surr.detach()
             else:
                 own = tree(mb.obs[:, i], tau).action
                 a_st = torch.cat([a_st_cache[:, :block.start], own, a_st_cache[:, block.stop:]], dim=-1)
@@ -624,6 +733,28 @@ class Method:
         self.critic_opt.load_state_dict(state["critic_opt"])
         self.updates = int(state["updates"])
         self.gen.set_state(state["rng"])
+
+
+def gap_summary(w_gap: list[float], cos: list[float]) -> dict[str, float]:
+    """An update's W_gap and cos(g_ind, g_team), one value per minibatch in order, as
+    metrics-row entries: each minibatch's value (``w_gap_mb{m}``, ``cos_ind_team_mb{m}``),
+    the first (at the update's start, ratio 1), the median, the mean and, for W_gap (heavy
+    tailed: one update can be 1e3 times the median), the geometric mean over the
+    minibatches after the first, ``exp(mean ln W)`` (0 if one of them is 0; NaN with a
+    single minibatch). ``w_gap`` / ``cos_ind_team`` repeat the means (the training curves'
+    keys, sage/report.py)."""
+    w, c = np.asarray(w_gap, dtype=np.float64), np.asarray(cos, dtype=np.float64)
+    out = {f"w_gap_mb{m}": float(v) for m, v in enumerate(w)}
+    out.update({f"cos_ind_team_mb{m}": float(v) for m, v in enumerate(c)})
+    steps = w[1:]
+    with np.errstate(divide="ignore"):
+        geomean = float(np.exp(np.log(steps).mean())) if len(steps) else math.nan
+    out.update(w_gap_first=float(w[0]), w_gap_median=float(np.median(w)), w_gap_mean=float(w.mean()),
+               w_gap_geomean=geomean, w_gap_last=float(w[-1]),
+               cos_ind_team_first=float(c[0]), cos_ind_team_median=float(np.median(c)),
+               cos_ind_team_mean=float(c.mean()))
+    out["w_gap"], out["cos_ind_team"] = out["w_gap_mean"], out["cos_ind_team_mean"]
+    return out
 
 
 def make_method(name: str, cfg: AlgoConfig | None, obs_dim: int, state_dim: int) -> Method:

@@ -64,7 +64,7 @@ split parameters). (tests/test_algos.py checks the detached and shared forms agr
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -251,3 +251,26 @@ def unflatten_like(vec: Tensor, params: Sequence[Tensor]) -> list[Tensor]:
     if start != vec.numel():
         raise ValueError(f"vector of {vec.numel()} entries for {start} parameters")
     return out
+
+
+def equal_length_ab(w_at: Callable[[Tensor], float], w_before: float, g_talo: Tensor, g_ind: Tensor,
+                    length: float) -> tuple[float, float]:
+    """The local claim of Eq. (talo_condition) as an A/B on a frozen minibatch: W_gap
+    after a step of the same length along g_TALO and along g_ind,
+    ``(w_at(length g_TALO/||g_TALO||), w_at(length g_ind/||g_ind||))``.
+
+    ``w_at(displacement)`` evaluates W_gap at the frozen minibatch's parameters plus a
+    flat displacement. A zero direction is no step (``w_before``); where the correction
+    is off, g_TALO = g_ind and the step is evaluated once."""
+    if not length >= 0:
+        raise ValueError(f"the A/B step length must be >= 0 (got {length})")
+
+    def after(g: Tensor) -> float:
+        n = float(g.norm())
+        if n == 0.0 or length == 0.0:
+            return float(w_before)
+        return float(w_at(g * (length / n)))
+
+    w_ind = after(g_ind)
+    w_talo = w_ind if torch.equal(g_talo, g_ind) else after(g_talo)
+    return w_talo, w_ind
