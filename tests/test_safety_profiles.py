@@ -259,8 +259,9 @@ def test_margin_violation_stays_zero_on_a_scripted_successful_run(rows):
 
 
 def test_env_margin_violation_matches_the_barriers_of_its_state():
-    """Random actions: for envs that did not reset, the step's flag equals barrier_values(...)["min"] < 0
-    of the measured state (the per-point distance shortcut is the full specification)."""
+    """Random actions: for envs that did not reset, the step's flag equals barrier_values(...)["min"]
+    < -margin_violation_tol of the measured state (the per-point distance shortcut is the full
+    specification)."""
     env = BatchEnv(EnvConfig("tilt_gate", safety_rows="grasp", max_steps=200), 6, seed=1)
     env.reset()
     rng = np.random.default_rng(0)
@@ -270,7 +271,7 @@ def test_env_margin_violation_matches_the_barriers_of_its_state():
         live = ~(out["terminated"] | out["truncated"])
         sn = env.snap
         geom = S.SafetyGeometry(sn.cxy, sn.cyaw, sn.pxy, sn.pyaw, PAYLOAD_POINTS_LOCAL, GRASP_LOCAL, PAIR_REST)
-        want = S.barrier_values(geom, env.walls_array, env.safety_cfg)["min"] < 0
+        want = S.barrier_values(geom, env.walls_array, env.safety_cfg)["min"] < -env.cfg.margin_violation_tol
         assert np.array_equal(out["margin_violation"][live], want[live])
         fired += int(out["margin_violation"].sum())
     assert fired > 0

@@ -101,6 +101,22 @@ class EnvConfig:
     # payload-wall; a payload drop is a task outcome the shield does not prevent); "grasp" adds
     # the formation rows (pair distances within +-grasp_tol; our extension, not in the paper).
     safety_rows: str = bounded("paper", choices=("paper", "grasp"))
+    # --- outcome metrics (episode records, common/env/metrics.py) ---
+    # A margin violation (margin_violation_steps, margin_col_per_1k) is a true barrier of the
+    # shield's specification below -margin_violation_tol. 5 mm: what carriers of this kind
+    # resolve and place to (localization 5 mm, obs_noise_xy; the frozen tracker realizes a
+    # commanded base step to millimetres), so a barrier of -5e-8 m (the shielded runs'
+    # median, a QP at its row's boundary with the one-step predictor's rounding) is no
+    # measurable excursion; 0.0 counts every one.
+    margin_violation_tol: float = bounded(0.005, ge=0.0, le=1.0)   # m
+    # A truncated episode (time limit, neither success nor drop) is a deadlock when the payload
+    # stayed within deadlock_move_xy and deadlock_move_yaw of one pose for its last
+    # deadlock_window_s (the team stopped: e.g. its proposals held at a gate by the shield),
+    # else a timeout (still moving, too slowly or the wrong way). A moving team leaves that
+    # neighbourhood within a step or two (max_step_xy 8 cm, max_step_yaw 0.1 rad per 0.1 s).
+    deadlock_window_s: float = bounded(5.0, gt=0.0, le=1e4)       # s
+    deadlock_move_xy: float = bounded(0.05, ge=0.0, le=10.0)      # m
+    deadlock_move_yaw: float = bounded(0.1, ge=0.0, le=3.2)       # rad
     # scripted human partner (human_slot)
     human_noise: float = bounded(0.15, ge=0.0, le=10.0)           # std of additive action noise
     human_delay: int = bounded(2, ge=0, le=100)                # control steps of reaction delay

@@ -68,8 +68,12 @@ def evaluate_policy(params: dict, env_cfg, episodes: int, seed: int, shielded: b
     tells obstacle constraints apart from the tight grasp-formation rows.
     Two collision measures come from the episodes (``aggregate``): ``col_per_1k``
     (steps with physical wall contact) and ``margin_col_per_1k`` (steps after which a
-    true barrier of the shield's own specification is below 0, contact or not), both
-    with ``_std`` and ``_pooled``; ``margin_violation_steps`` is the pooled count.
+    true barrier of the shield's own specification is below ``-margin_violation_tol``,
+    5 mm, contact or not), both as the per-episode mean (with ``_std``) and pooled
+    (``_pooled``: violation steps / all steps); ``margin_violation_steps`` is the pooled
+    count. How the episodes ended, apart: ``success_rate``, ``drop_rate`` and
+    ``truncation_rate`` (time limit) = ``timeout_rate`` + ``deadlock_rate`` (the payload
+    still for the last ``deadlock_window_s``: e.g. the shield holding the team at a gate).
     ``max_steps`` caps the loop (default: the episode limit + 1, by which every
     episode has ended). ``on_step(finished, step, limit)``, if given, is called
     after every step (progress displays)."""

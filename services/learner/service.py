@@ -163,7 +163,7 @@ def _episode_summary(episodes: list[dict]) -> dict:
     if not episodes:
         return {"episodes": 0}
     out = {"episodes": len(episodes)}
-    for k in ("success", "return", "collision_steps", "length", "drop"):
+    for k in ("success", "return", "collision_steps", "length", "drop", "truncated", "deadlock"):
         vals = [e[k] for e in episodes if k in e]
         if vals:
             out[f"ep_{k}_mean"] = float(np.mean(vals))
@@ -335,6 +335,7 @@ class LearnerService(Service):
         self.last_deploy_sr = e["success_rate"]
         return {"deploy_sr": e["success_rate"], "deploy_return": e["return_mean"],
                 "deploy_col_per_1k": e["col_per_1k"], "deploy_drop_rate": e["drop_rate"],
+                "deploy_truncation_rate": e["truncation_rate"],
                 "deploy_correction": e["correction_mean"], "deploy_probe_s": time.perf_counter() - t0}
 
     # ------------------------------------------------------------- chunks
@@ -436,6 +437,7 @@ class LearnerService(Service):
             if "success" in e:
                 self.recent_success.append(e["success"])
         lags = [self.version - b["version"] for b in bodies]
+        step_lags = self.version - np.concatenate([np.asarray(b["version_t"]) for b in bodies])
         t0, cpu0 = time.perf_counter(), time.thread_time()
         diag = self.method.update(batch, self.progress())
         dt, cpu = time.perf_counter() - t0, time.thread_time() - cpu0
@@ -452,7 +454,10 @@ class LearnerService(Service):
                # processes hold the core or the interpreter lock
                "update_cpu_s": cpu, "progress": self.progress(),
                "batch_T": int(batch["reward"].shape[0]), "batch_K": int(batch["reward"].shape[1]),
-               "lag_max": int(max(lags)), "chunks_stale": self.counts["stale"],
+               # the data's policy lag (learner version - behaviour version): chunks' oldest, per step
+               "lag_max": int(max(lags)), "lag_min": int(min(lags)),
+               "lag_mean": float(step_lags.mean()) if step_lags.size else float(np.mean(lags)),
+               "chunks_stale": self.counts["stale"],
                "reward_mean": float(batch["reward"].mean()),
                "success_rate_recent": float(np.mean(self.recent_success)) if self.recent_success else None}
         row.update(_episode_summary(episodes))
