@@ -209,6 +209,11 @@ def test_local_ab_is_deterministic_and_leaves_the_parameters(name):
     torch.testing.assert_close(flat(m), at, rtol=0, atol=0)
     assert first["ab_step"] == length and first["ab_w_before"] > 0 and first["ab_corrected"] == 1.0
     assert first["ab_ratio"] == pytest.approx(first["ab_w_talo"] / first["ab_w_ind"])
+    # first order, by construction of Eq. (talo_projection): g_TALO's rate meets the condition
+    g_talo_n = float(talo_project(g_ind, grad_w, w0, m.cfg.talo_sigma, m.cfg.talo_eps)[0].norm())
+    assert first["ab_rate_talo"] <= -m.cfg.talo_sigma * float(w0) / g_talo_n * (1 - 1e-6)
+    assert first["ab_rate_ind"] == pytest.approx(float(grad_w @ g_ind / g_ind.norm()), rel=1e-9)
+    assert first["ab_rate_talo"] < first["ab_rate_ind"]
 
     def w_here():
         a_st, _, _, start = m._start_point(mb, TAU, KAPPA)
@@ -234,7 +239,8 @@ def test_local_ab_is_deterministic_and_leaves_the_parameters(name):
 def test_update_logs_the_ab_on_its_last_minibatch():
     m = make_method("talo_cbf", small_cfg(), OBS, 0)
     d = m.update(lagged_batch(m), 0.5)
-    for key in ("ab_w_before", "ab_w_talo", "ab_w_ind", "ab_ratio", "ab_corrected", "ab_step"):
+    for key in ("ab_w_before", "ab_w_talo", "ab_w_ind", "ab_ratio", "ab_rate_talo", "ab_rate_ind",
+                "ab_corrected", "ab_step"):
         assert np.isfinite(d[key]), key
     assert d["ab_step"] > 0        # the length of the method's own last step (mech_ab_step = 0)
     fixed = make_method("talo_cbf", small_cfg(mech_ab_step=0.01), OBS, 0)

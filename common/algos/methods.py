@@ -524,6 +524,9 @@ class Method:
 
         ``ab_w_before``, ``ab_w_talo``, ``ab_w_ind``, ``ab_ratio`` = ab_w_talo / ab_w_ind
         (< 1: TALO's direction kept the gap smaller; NaN where ab_w_ind = 0),
+        ``ab_rate_talo``, ``ab_rate_ind`` (the first-order rates grad W . g / ||g|| of the
+        two directions, what Eq. talo_condition is about; in the split parameters' blocks
+        grad W is the straight-through surrogate, common/algos/talo.py),
         ``ab_corrected`` (Delta_gap > 0; else g_TALO = g_ind and the ratio is 1) and
         ``ab_step`` (the length)."""
         current = self._actor_values()
@@ -544,8 +547,13 @@ class Method:
             w_talo, w_ind = equal_length_ab(w_at, float(w0), g_talo, g_ind, length)
         finally:
             self._set_actor_values(current)
+        def rate(g: Tensor) -> float:
+            n = float(g.norm())
+            return float(grad_w @ g) / n if n > 0 else 0.0
+
         return {"ab_w_before": float(w0), "ab_w_talo": w_talo, "ab_w_ind": w_ind,
                 "ab_ratio": w_talo / w_ind if w_ind > 0 else math.nan,
+                "ab_rate_talo": rate(g_talo), "ab_rate_ind": rate(g_ind),
                 "ab_corrected": float(delta > 0.0), "ab_step": float(length)}
 
     def _joint_step(self, mb: Minibatch, tau: float, kappa: float) -> tuple[dict[str, float], dict]:
