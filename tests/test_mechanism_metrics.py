@@ -156,6 +156,28 @@ def test_the_ppo_surrogate_keeps_the_behaviour_ratio():
     assert gap["w_gap"] == 0.0       # while the diagnostics were taken at ratio 1
 
 
+@pytest.mark.parametrize("name", ["talo_cbf", "sail_cbf"])
+def test_on_policy_the_diagnostics_share_the_algorithms_surrogates(name):
+    """Where the update's start is the behaviour policy bitwise (on-policy: the actors'
+    log-density is the learner's), the two surrogates are one object and the joint step
+    computes one gap; with a lag they are two, and differ."""
+    m = make_method(name, small_cfg(), OBS, 0)
+    fresh, _ = m._prepare(small_batch(m))
+    kappa = m.actor_settings(0.5)["kappa"]
+    # the in-process actors give the learner's log-density bitwise (the sample-based bandit
+    # here rounds differently in the last bits): make the stored one exactly that
+    fresh.logp_old = torch.where(fresh.active, m._start_log_prob(fresh, TAU, kappa), fresh.logp_old)
+    _, _, behaviour, start = m._start_point(fresh, TAU, kappa)
+    assert start is behaviour
+    fresh.logp_old = fresh.logp_old + 1e-12 * fresh.active           # one ulp-ish apart: two surrogates
+    _, _, behaviour, start = m._start_point(fresh, TAU, kappa)
+    assert start is not behaviour
+    lagged, _ = m._prepare(lagged_batch(m))
+    _, _, behaviour, start = m._start_point(lagged, TAU, kappa)
+    assert start is not behaviour and not torch.equal(start.log_ratio, behaviour.log_ratio)
+    assert float(start.log_ratio.detach().abs().max()) == 0.0  # the forward is its own reference
+
+
 def test_w_gap_mean_is_measured_before_each_step():
     """A sequential method's per-minibatch W_gap is taken at the parameters its step starts from."""
     m, ref = (make_method("sail_cbf", small_cfg(epochs=1, minibatches=1), OBS, 0) for _ in range(2))

@@ -126,6 +126,7 @@ class StartPoint:
     a_st: Tensor        # [B, D] nominal actions (detached)
     step: SailStep | None   # SAIL's implicit step there (None: no implicit SAIL center)
     behaviour: Surrogates
+    g_ind: Tensor | None = None   # flat g_ind of ``behaviour`` where the diagnostics took it
 
 
 class Method:
@@ -483,27 +484,31 @@ class Method:
         surrogates on it twice: ``behaviour`` (ratio against the behaviour policy: the
         PPO surrogates the methods step along) and ``start`` (ratio against the update's
         start policy ``mb.logp_start``: the mechanism diagnostics).
-        Returns (a_ST, SAIL step or None, behaviour, start)."""
+        Where the two references agree bitwise on the minibatch (on-policy data: the
+        actors' log-density is the learner's), ``start is behaviour``, and whatever is
+        computed on one serves the other. Returns (a_ST, SAIL step or None, behaviour, start)."""
         a_st = self._tree_actions(mb, tau, grad=True)
         step = self._sail_step(mb, a_st, kappa)
         logp = proposal_log_prob(self._center(mb, a_st, kappa, step=step), self._log_std(), mb.a_prop)
-        behaviour = Surrogates(self._ratio_against(mb, logp, mb.logp_old), *self._surrogates_of(mb, logp, mb.logp_old))
+        behaviour = self._surrogates_against(mb, logp, mb.logp_old)
         reference = logp.detach() if mb.logp_start is None else mb.logp_start
-        start = Surrogates(self._ratio_against(mb, logp, reference), *self._surrogates_of(mb, logp, reference))
-        return a_st, step, behaviour, start
+        start_ratio = self._ratio_against(mb, logp, reference)
+        if torch.equal(start_ratio, behaviour.log_ratio):
+            return a_st, step, behaviour, behaviour
+        return a_st, step, behaviour, self._surrogates_against(mb, logp, reference)
 
-    def _surrogates_of(self, mb: Minibatch, logp: Tensor, reference: Tensor) -> tuple[list[Tensor], Tensor]:
-        return self._surrogates(mb, self._ratio_against(mb, logp, reference))
+    def _surrogates_against(self, mb: Minibatch, logp: Tensor, reference: Tensor) -> Surrogates:
+        log_ratio = self._ratio_against(mb, logp, reference)
+        return Surrogates(log_ratio, *self._surrogates(mb, log_ratio))
 
     def _gap(self, a_st: Tensor, s: Surrogates, with_hvp: bool):
         """Eq. (talo_gap) on surrogates ``s`` built on the forward that produced ``a_st``."""
         return talo_gap(s.L_ind, s.L_team, self.groups, separable=not self.uses_sail,
                         with_hvp=with_hvp, through=self._through(a_st))
 
-    def _measure_gap(self, a_st: Tensor, start: Surrogates) -> dict[str, float]:
-        """The mechanism diagnostics (Eq. talo_gap, no HVP) on the start-referenced surrogates."""
-        g_ind, g_team, w, _ = self._gap(a_st, start, with_hvp=False)
-        return {"w_gap": float(w), "cos_ind_team": cosine(g_ind, g_team)}
+    @staticmethod
+    def _gap_stats(g_ind: Tensor, g_team: Tensor, w_gap) -> dict[str, float]:
+        return {"w_gap": float(w_gap), "cos_ind_team": cosine(g_ind, g_team)}
 
     def _gap_diagnostics(self, mb: Minibatch, tau: float, kappa: float):
         """W_gap and cos(g_ind, g_team) (Eq. talo_gap, no HVP, ratios against the update's
@@ -511,8 +516,9 @@ class Method:
         measures them itself). Also returns the ``StartPoint``, which the HAPPO step
         reuses: the forward (saves a SAIL solve) and its first carrier's surrogate."""
         a_st, step, behaviour, start = self._start_point(mb, tau, kappa)
-        gap = self._measure_gap(a_st, start)
-        return gap, StartPoint(a_st.detach().clone(), step, behaviour)
+        g_ind, g_team, w, _ = self._gap(a_st, start, with_hvp=False)
+        return self._gap_stats(g_ind, g_team, w), \
+            StartPoint(a_st.detach().clone(), step, behaviour, g_ind if start is behaviour else None)
 
     def local_ab(self, mb: Minibatch, tau: float, kappa: float, length: float,
                  at: list[Tensor] | None = None) -> dict[str, float]:
@@ -562,10 +568,12 @@ class Method:
         Returns (stats, gap stats measured before the step)."""
         cfg = self.cfg
         a_st, _, behaviour, start = self._start_point(mb, tau, kappa)
-        gap = self._measure_gap(a_st, start)
         log_ratio, L_ind, L_team = behaviour.log_ratio, behaviour.L_ind, behaviour.L_team
         # the algorithm's gap: ratios against the behaviour policy (Eq. ppo_surrogates)
         g_ind, g_team, w, grad_w = self._gap(a_st, behaviour, with_hvp=self.uses_talo)
+        # the diagnostics' gap: ratios against the update's start (the same one on-policy)
+        gap = self._gap_stats(g_ind, g_team, w) if start is behaviour \
+            else self._gap_stats(*self._gap(a_st, start, with_hvp=False)[:3])
         entropy = self._entropy()
         g_ent = cfg.ent_coef * flat_grad(entropy.sum(), self.actor_params) if cfg.ent_coef > 0 \
             else torch.zeros_like(g_ind)
@@ -660,7 +668,9 @@ class Method:
                 # M = 1: this carrier's surrogate is L_i at the start point, on the
                 # diagnostics' forward; only the entropy is added
                 log_ratio, surr = start.behaviour.log_ratio[:, i].detach(), start.behaviour.L_ind[i]
-                grads = unflatten_like(flat_grad(surr, self.groups[i]), self.groups[i])
+                g_i = start.g_ind.split(self.group_sizes)[i] if start.g_ind is not None \
+                    else flat_grad(surr, self.groups[i])
+                grads = unflatten_like(g_i, self.groups[i])
                 for p, g in zip(self.groups[i], grads):
                     p.grad = -g                  # ascent on L_i -> descent for Adam
                 surr = surr.detach()
