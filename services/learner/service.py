@@ -454,8 +454,8 @@ class LearnerService(Service):
                # processes hold the core or the interpreter lock
                "update_cpu_s": cpu, "progress": self.progress(),
                "batch_T": int(batch["reward"].shape[0]), "batch_K": int(batch["reward"].shape[1]),
-               # the data's policy lag (learner version - behaviour version): chunks' oldest, per step
-               "lag_max": int(max(lags)), "lag_min": int(min(lags)),
+               # the data's policy lag (learner version - behaviour version of each step)
+               "lag_max": int(max(lags)), "lag_min": int(step_lags.min()) if step_lags.size else int(min(lags)),
                "lag_mean": float(step_lags.mean()) if step_lags.size else float(np.mean(lags)),
                "chunks_stale": self.counts["stale"],
                "reward_mean": float(batch["reward"].mean()),
