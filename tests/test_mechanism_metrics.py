@@ -267,6 +267,12 @@ def test_update_logs_the_ab_on_its_last_minibatch():
     assert d["ab_step"] > 0        # the length of the method's own last step (mech_ab_step = 0)
     fixed = make_method("talo_cbf", small_cfg(mech_ab_step=0.01), OBS, 0)
     assert fixed.update(small_batch(fixed), 0.5)["ab_step"] == 0.01
+    # one minibatch: the A/B's point is the update's start, and its steps are measured
+    # against that start (not each against itself, which would read 0 for the identity center)
+    one = make_method("happo_cbf", small_cfg(epochs=1, minibatches=1), OBS, 0)
+    d1 = one.update(lagged_batch(one), 0.5)
+    assert d1["ab_w_before"] == d1["w_gap_first"] == 0.0 and d1["ab_corrected"] == 0.0
+    assert d1["ab_w_ind"] == d1["ab_w_talo"] > 0 and d1["ab_ratio"] == 1.0
     off = make_method("talo_cbf", small_cfg(mech_ab_every=0), OBS, 0)
     assert "ab_ratio" not in off.update(small_batch(off), 0.5)
     with pytest.raises(ValueError):

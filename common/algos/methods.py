@@ -51,6 +51,7 @@ on every minibatch, with its own Adam.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import dataclass
@@ -540,6 +541,8 @@ class Method:
             if at is not None:
                 self._set_actor_values(at)
             base = self._actor_values()
+            if mb.logp_start is None:   # these parameters are the start: fix the reference here
+                mb = dataclasses.replace(mb, logp_start=self._start_log_prob(mb, tau, kappa))
             a_st, _, _, start = self._start_point(mb, tau, kappa)
             g_ind, _, w0, grad_w = self._gap(a_st, start, with_hvp=True)
             g_talo, delta = talo_project(g_ind, grad_w, w0, self.cfg.talo_sigma, self.cfg.talo_eps)
