@@ -17,7 +17,8 @@ from services.launcher import run_inprocess  # noqa: E402
 def test_metrics_rows_report_the_data_lag(tmp_path, max_lag):
     cfg = TrainConfig(run_id="lag", run_dir=str(tmp_path / "run"), updates=4, chunk_len=6, actors=2,
                       envs_per_actor=2, checkpoint_every=2, status_period_s=0.1, max_lag=max_lag).validate()
-    out = run_inprocess(cfg, progress=False, method=FakeMethod(), envs=[FakeBatchEnv(2, seed=0), FakeBatchEnv(2, seed=1)],
+    out = run_inprocess(cfg, progress=False, method=FakeMethod(),
+                        envs=[FakeBatchEnv(2, seed=0), FakeBatchEnv(2, seed=1)],
                         propose=fake_propose, solve=fake_solve, timeout_s=60)
     assert out["updates"] == 4
     rows = [json.loads(line) for line in (Path(cfg.run_dir) / "metrics.jsonl").read_text().splitlines()]

@@ -27,8 +27,8 @@ import math
 
 import numpy as np
 
-EPISODE_KEYS = ("success", "drop", "truncated", "deadlock", "return", "steps", "collision_steps", "col_per_1k", "margin_violation_steps",
-                "margin_col_per_1k", "completion_time", "tilt", "heading_error", "height_error", "min_clearance", "progress_per_step", "final_progress")
+EPISODE_KEYS = ("success", "drop", "truncated", "deadlock", "return", "steps", "collision_steps", "col_per_1k",
+                "margin_violation_steps", "margin_col_per_1k", "completion_time", "tilt", "heading_error", "height_error", "min_clearance", "progress_per_step", "final_progress")
 
 _AGG = {  # aggregate name -> episode key
     "success_rate": "success", "return_mean": "return", "col_per_1k": "col_per_1k",
