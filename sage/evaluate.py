@@ -34,6 +34,11 @@ def eval_record(e: dict) -> dict:
     for k in list(out):
         if f"{k}_std" in e:
             out[f"{k}_std"] = e[f"{k}_std"]
+    # pooled collision figures (violation steps / all steps) and how the episodes ended, apart
+    for k in ("col_per_1k_pooled", "margin_col_per_1k_pooled", "margin_violation_steps", "truncation_rate",
+              "timeout_rate", "deadlock_rate"):
+        if k in e:
+            out[k] = e[k]
     out["proposal_violation"] = e.get("proposal_violation_rate")
     for kind, rate in (e.get("proposal_violation_by_kind") or {}).items():
         out[f"proposal_violation_{kind}"] = rate

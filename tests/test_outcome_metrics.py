@@ -121,3 +121,9 @@ def test_deployment_evaluation_reports_truncation_apart():
     assert res["truncation_rate"] > 0
     assert res["timeout_rate"] + res["deadlock_rate"] == pytest.approx(res["truncation_rate"])
     assert "col_per_1k_pooled" in res and "margin_col_per_1k_pooled" in res
+    # `sage eval` and the suite's result records carry them
+    from sage.evaluate import eval_record
+    rec = eval_record(res)
+    for key in ("truncation_rate", "timeout_rate", "deadlock_rate", "col_per_1k_pooled", "margin_col_per_1k_pooled",
+                "margin_violation_steps", "success_rate", "drop_rate"):
+        assert rec[key] == res[key], key
