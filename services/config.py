@@ -71,7 +71,7 @@ class PortsConfig:
 class ShieldConfig:
     max_batch: int = bounded(256, ge=1, le=65536)        # QP rows per solve_cbf_qp call
     # wait at most this long for more requests once one arrived (longer only delays every actor)
-    window_s: float = bounded(0.002, ge=0.0, le=1.0)
+    window_s: float = bounded(0.002, ge=0.0, le=60.0)
     # common.shield.qp.BACKENDS names (listed here so the config does not import the numba kernels;
     # tests/test_config.py keeps the two equal)
     backend: str = bounded("default", choices=("default", "dual_active_set", "osqp"))
