@@ -385,8 +385,12 @@ class Method:
                                     self.sail_config, step=step)
 
     def _log_ratio(self, mb: Minibatch, center: Tensor, log_std: Tensor) -> Tensor:
-        """Per-carrier log-likelihood ratio at the stored a_prop [B, N]; 0 on human blocks."""
-        logp = proposal_log_prob(center, log_std, mb.a_prop)
+        """Per-carrier log-likelihood ratio at the stored a_prop [B, N]; 0 on human blocks.
+        A human block holds the human's measured action, which may sit on the box face
+        (|a| = 1, outside the proposal's support): it has no density and no ratio, so it
+        is evaluated at 0 and masked out, never passed to the density as an action."""
+        a_robot = torch.where(mb.fixed, torch.zeros_like(mb.a_prop), mb.a_prop)
+        logp = proposal_log_prob(center, log_std, a_robot)
         return torch.where(mb.active, logp - mb.logp_old, torch.zeros_like(logp))
 
     def _clipped(self, ratio: Tensor, adv: Tensor) -> Tensor:
