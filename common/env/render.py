@@ -36,25 +36,29 @@ def draw_scenario(ax, name: str, seed: int = 0, every: int = 12):
     from matplotlib.patches import Circle
 
     spec = SCENARIOS[name]
-    for w in spec.walls:
-        _box(ax, *w, facecolor="0.35", edgecolor="0.2", lw=0.5)
+    for j, w in enumerate(spec.walls):
+        _box(ax, *w, facecolor="0.35", edgecolor="0.2", lw=0.5, label="wall" if j == 0 else None)
     route = Route(spec.route)
-    ax.plot(route.points[:, 0], route.points[:, 1], "--", color="tab:green", lw=1.0, label="route")
+    ax.plot(route.points[:, 0], route.points[:, 1], "--", color="tab:green", lw=1.0, label="reference route")
     poses, rec = scripted_rollout(name, seed)
     sel = list(range(0, len(poses), every)) + [len(poses) - 1]
     cmap = __import__("matplotlib").colormaps["viridis"]
     for j, t in enumerate(sel):
         pxy, yaw, cxy = poses[t]
         col = cmap(j / max(len(sel) - 1, 1))
-        _box(ax, pxy[0], pxy[1], PAYLOAD_HALF[0], PAYLOAD_HALF[1], yaw, facecolor=col, alpha=0.35, edgecolor=col)
+        first = j == 0
+        _box(ax, pxy[0], pxy[1], PAYLOAD_HALF[0], PAYLOAD_HALF[1], yaw, facecolor=col, alpha=0.35, edgecolor=col,
+             label=f"payload every {every} steps (dark → light)" if first else None)
         for i in range(len(GRASP_LOCAL)):
-            ax.add_patch(Circle(cxy[i], CARRIER_RADIUS, facecolor="none", edgecolor=col, lw=0.6))
+            ax.add_patch(Circle(cxy[i], CARRIER_RADIUS, facecolor="none", edgecolor=col, lw=0.6,
+                                label="carriers" if first and i == 0 else None))
     track = np.array([p[0] for p in poses])
-    ax.plot(track[:, 0], track[:, 1], color="tab:orange", lw=1.0)
+    ax.plot(track[:, 0], track[:, 1], color="tab:orange", lw=1.0, label="payload centre")
     ax.set_xlim(spec.bounds[0], spec.bounds[1])
     ax.set_ylim(spec.bounds[2], spec.bounds[3])
     ax.set_aspect("equal")
     ax.set_title(f"{spec.title} ({spec.family})" + ("" if rec["success"] else " [scripted run failed]"), fontsize=9)
+    ax.set_xlabel("x (m)", fontsize=7); ax.set_ylabel("y (m)", fontsize=7)
     ax.tick_params(labelsize=6)
     return rec
 
@@ -74,7 +78,10 @@ def render(out: str, names: list[str], seed: int = 0):
         records[name] = draw_scenario(ax, name, seed)
     for ax in list(axes.flat)[n:]:
         ax.axis("off")
-    fig.tight_layout()
+    # one legend for the figure (every panel draws the same kinds of things)
+    fig.legend(*axes.flat[0].get_legend_handles_labels(), loc="upper center", ncol=3 if n > 1 else 2,
+               fontsize=7 if n > 1 else 6)
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.5 / (3.4 * rows)))
     fig.savefig(out, dpi=130)
     plt.close(fig)
     return records
