@@ -19,7 +19,9 @@ from pathlib import Path
 from common.algos.registry import ALL_METHODS, method_spec
 from common.env.scenarios import SCENARIOS
 from common.evaluation.deployment import evaluate_policy
+from common.checkpoint import load_latest
 from common.rundir import RunDir, atomic_write_text
+from common.status import UNBOUNDED_UPDATES
 from deploy import ray_run
 from deploy.ray_run import ClusterError, RayPlacement, run_on_ray
 from deploy.sage_run import METRICS_OFFSETS, default_actor_count, parse_ids, run_supervised
@@ -263,6 +265,9 @@ def cmd_train(args) -> int:
     cfg_path = save_run_config(cfg, run)
     print(f"run {cfg.run_id}: {cfg.method} on {cfg.scenario}, {cfg.actors} actor(s) x {cfg.envs_per_actor} envs, "
           f"mode {mode}, run dir {run.root}", file=sys.stderr)
+    resuming = resume_note(cfg, run)
+    if resuming:
+        print(resuming, file=sys.stderr)
     if cfg.tensorboard:   # the learner writes event files when tensorboardX imports
         print(f"tensorboard: events in {run.tensorboard}" if tensorboard_available() else
               "tensorboard: off (pip install 'sage-transport[tensorboard]' for event files)", file=sys.stderr)
@@ -271,16 +276,44 @@ def cmd_train(args) -> int:
             run_ray(cfg_path, placement)
         if code:
             return code
-        try:
-            _, params, version = load_run(run.root)
-        except FileNotFoundError:
-            params, version = None, None
-        summary = {"mode": mode, "version": version, **last_progress(run)}
+        summary, params = supervised_summary(run, mode)
     else:
         out = run_inprocess(cfg, progress=not args.quiet)
         params = out.pop("params")
         out.pop("status", None)
         summary = {"mode": "inprocess", **out}
+    write_summary(cfg, run, summary, params)
+    print(json.dumps({"run_dir": str(run.root), "version": summary.get("version"),
+                      "updates": summary.get("updates")}))
+    return 0
+
+
+def resume_note(cfg: TrainConfig, run: RunDir) -> str | None:
+    """``resuming run X from checkpoint version V (update U of N)`` when the learner
+    will resume a checkpoint of this run directory; None for a fresh run."""
+    if not cfg.resume:
+        return None
+    ck = load_latest(run.checkpoints)
+    if ck is None:
+        return None
+    budget = f" of {cfg.updates}" if cfg.updates < UNBOUNDED_UPDATES else ""
+    return (f"resuming run {cfg.run_id} from checkpoint version {int(ck['version'])} "
+            f"(update {int(ck['updates'])}{budget}, {int(ck['env_steps'])} env steps) in {run.checkpoints}")
+
+
+def supervised_summary(run: RunDir, mode: str) -> tuple[dict, dict | None]:
+    """(summary, newest tree params) of a run whose learner ran in another process:
+    its newest checkpoint and its last metrics row."""
+    try:
+        _, params, version = load_run(run.root)
+    except FileNotFoundError:
+        params, version = None, None
+    return {"mode": mode, "version": version, **last_progress(run)}, params
+
+
+def write_summary(cfg: TrainConfig, run: RunDir, summary: dict, params: dict | None) -> dict:
+    """The final deployment evaluation (``cfg.eval_episodes`` > 0) into ``summary``,
+    written atomically to ``summary.json``."""
     if cfg.eval_episodes > 0 and params is not None:
         summary["eval"] = final_eval(cfg, params)
         e = summary["eval"]
@@ -288,9 +321,7 @@ def cmd_train(args) -> int:
               f"SR {e['success_rate']:.2f}  return {e['return_mean']:.2f}  col/1k {e['col_per_1k']:.2f}  "
               f"intervention {e['intervention_rate']:.2f}", file=sys.stderr)
     atomic_write_text(run.summary, json.dumps(summary, indent=2, default=_num) + "\n")
-    print(json.dumps({"run_dir": str(run.root), "version": summary.get("version"),
-                      "updates": summary.get("updates")}))
-    return 0
+    return summary
 
 
 def run_ray(cfg_path: Path, placement: RayPlacement, **kw) -> int:
@@ -419,14 +450,30 @@ def cmd_up(args) -> int:
                              f"ids 0..{cfg.actors - 1}")
     if args.ray_resources and args.ray is None:
         raise UsageError("--ray-resources places services on a Ray cluster: use it with --ray ADDRESS")
+    run = RunDir(cfg.run_dir)
     if args.ray is not None:
         placement = ray_placement(args, max_restarts=args.restart_budget)
         join_cluster(placement, cfg, roles, ids)
-        return run_ray(save_run_config(cfg, RunDir(cfg.run_dir)), placement, roles=roles, actor_ids=ids)
-    path = save_run_config(cfg, RunDir(cfg.run_dir))
-    try:
-        return run_supervised(path, roles=roles, actor_ids=ids,
-                              supervisor=SupervisorConfig(restart_budget=args.restart_budget))
-    except RuntimeError as exc:  # e.g. the local router never came up
-        print(f"sage up: {exc}", file=sys.stderr)
-        return EXIT_GAVE_UP
+        path = save_run_config(cfg, run)
+        _say_resuming(cfg, run, roles)
+        code = run_ray(path, placement, roles=roles, actor_ids=ids)
+    else:
+        path = save_run_config(cfg, run)
+        _say_resuming(cfg, run, roles)
+        try:
+            code = run_supervised(path, roles=roles, actor_ids=ids,
+                                  supervisor=SupervisorConfig(restart_budget=args.restart_budget))
+        except RuntimeError as exc:  # e.g. the local router never came up
+            print(f"sage up: {exc}", file=sys.stderr)
+            return EXIT_GAVE_UP
+    if code == 0 and "learner" in roles:
+        # the host of the learner writes what `sage train` writes: summary.json with the final evaluation
+        summary, params = supervised_summary(run, "ray" if args.ray is not None else "supervised")
+        write_summary(cfg, run, summary, params)
+    return code
+
+
+def _say_resuming(cfg: TrainConfig, run: RunDir, roles) -> None:
+    note = resume_note(cfg, run) if "learner" in roles else None
+    if note:
+        print(note, file=sys.stderr)

@@ -217,6 +217,7 @@ class LearnerService(Service):
         extra["unfiltered_steps"] = float(self.unfiltered_steps)
         extra["queue_depth"] = float(self.chunks.qsize())
         extra["update_s_total"] = self.update_s_total
+        extra["budget_updates"], extra["progress"] = float(self.cfg.updates), self.progress()   # live line n/N, ETA
         if self.last_deploy_sr is not None and np.isfinite(self.last_deploy_sr):
             extra["deploy_sr"] = float(self.last_deploy_sr)
         return {"version": self.version, "env_steps": self.env_steps, "updates": self.updates,
