@@ -30,7 +30,8 @@ from sage.errors import UsageError, nonneg_int, one_line, port, positive_float, 
 from sage.runs import last_progress, load_run, read_config
 from services.config import FINAL_EVAL_SEED, TrainConfig
 from services.launcher import ROLES, run_inprocess
-from services.learner.service import tensorboard_available
+from services.learner.tracking import (WANDB_HINT, MetricsTail, TrackingConfig, WandbRun, tensorboard_available,
+                                       wandb_available)
 
 
 def register(commands, bench) -> None:
@@ -63,6 +64,7 @@ def register(commands, bench) -> None:
                         "--set shield.window_s=0.001 --set train.deploy_probe_every=10 (value parsed as JSON, else string)")
     p.add_argument("--quiet", action="store_true", help="no live progress line")
     add_ray_arguments(p, "implies --mode ray; default with --mode ray: auto")
+    add_tracking_arguments(p)
     p.set_defaults(func=cmd_train)
 
     p = commands.add_parser("up", help="run learner, shield and actors as supervised processes (restarts, "
@@ -79,6 +81,47 @@ def add_ray_arguments(p, note: str) -> None:
     p.add_argument("--ray-resources", action="append", default=[], metavar="SERVICE=RESOURCE:AMOUNT",
                    help="extra Ray resources of a service (actor-1) or role (actor), e.g. to pin it to the nodes "
                         "that have a custom resource: --ray-resources learner=gpu_host:1 (repeatable)")
+
+
+def add_tracking_arguments(p) -> None:
+    """``--track`` (Weights & Biases) and its project/entity/group (``TrackingConfig``)."""
+    d = TrackingConfig()
+    p.add_argument("--track", action="store_true",
+                   help="also log the run to Weights & Biases (metrics by section against env steps, the resolved "
+                        f"config, the final evaluation; extra: {WANDB_HINT}); WANDB_MODE=offline needs no network")
+    p.add_argument("--wandb-project", default=d.project, help="W&B project (default %(default)s)")
+    p.add_argument("--wandb-entity", default=d.entity, help="W&B entity (default: your W&B default)")
+    p.add_argument("--wandb-group", default=d.group, help="W&B group, e.g. a suite's name")
+
+
+def tracking_config(args) -> TrackingConfig | None:
+    """The W&B settings of ``--track`` (None without it); no wandb installed is a ``UsageError``."""
+    if not getattr(args, "track", False):
+        return None
+    if not wandb_available():
+        raise UsageError(f"--track logs to Weights & Biases, which is not installed: {WANDB_HINT}")
+    return TrackingConfig(project=args.wandb_project, entity=args.wandb_entity, group=args.wandb_group)
+
+
+def start_tracking(track: TrackingConfig | None, cfg: TrainConfig, run: RunDir):
+    """A W&B run fed from the run's metrics file by a ``MetricsTail`` thread, or None."""
+    if track is None:
+        return None
+    try:
+        wb = WandbRun(track, cfg.run_id, run.root, json.loads(cfg.to_json()))
+    except Exception as exc:  # noqa: BLE001 - wandb's own errors (no login, no network): one line
+        raise UsageError(f"--track: Weights & Biases did not start a run ({one_line(exc)}); "
+                         "WANDB_MODE=offline logs locally without an account") from None
+    print(f"wandb: run {cfg.run_id} in project {track.project} ({wb.run.settings.mode} mode, "
+          f"files in {wb.run.dir})", file=sys.stderr)
+    return wb, MetricsTail(run.metrics_jsonl, wb.log, track.poll_s).start()
+
+
+def stop_tracking(tracking, summary: dict | None) -> None:
+    if tracking is not None:
+        wb, tail = tracking
+        tail.stop()
+        wb.finish(summary)
 
 
 def ray_placement(args, max_restarts: int | None = None) -> RayPlacement:
@@ -259,6 +302,7 @@ def cmd_train(args) -> int:
         print(f"sage train: {run.root} holds a run of {clash}; the learner would resume its checkpoints. "
               "Use another --run-dir (or the same method and scenario to resume).", file=sys.stderr)
         return 2
+    track = tracking_config(args)
     placement = ray_placement(args) if mode == "ray" else None
     if placement is not None:
         join_cluster(placement, cfg)
@@ -271,18 +315,25 @@ def cmd_train(args) -> int:
     if cfg.tensorboard:   # the learner writes event files when tensorboardX imports
         print(f"tensorboard: events in {run.tensorboard}" if tensorboard_available() else
               "tensorboard: off (pip install 'sage-transport[tensorboard]' for event files)", file=sys.stderr)
-    if mode in ("supervised", "ray"):
-        code = int(run_supervised(str(cfg_path)) or 0) if mode == "supervised" else \
-            run_ray(cfg_path, placement)
-        if code:
-            return code
-        summary, params = supervised_summary(run, mode)
-    else:
-        out = run_inprocess(cfg, progress=not args.quiet)
-        params = out.pop("params")
-        out.pop("status", None)
-        summary = {"mode": "inprocess", **out}
-    write_summary(cfg, run, summary, params)
+    tracking, summary = start_tracking(track, cfg, run), None
+    try:
+        if mode in ("supervised", "ray"):
+            code = int(run_supervised(str(cfg_path)) or 0) if mode == "supervised" else \
+                run_ray(cfg_path, placement)
+            if code:
+                return code
+            summary, params = supervised_summary(run, mode)
+        else:
+            out = run_inprocess(cfg, progress=not args.quiet)
+            params = out.pop("params")
+            out.pop("status", None)
+            summary = {"mode": "inprocess", **out}
+        if track is not None:
+            summary["tracking"] = {"wandb": {"project": track.project, "run": cfg.run_id,
+                                             "dir": tracking[0].run.dir}}
+        write_summary(cfg, run, summary, params)
+    finally:
+        stop_tracking(tracking, summary)
     print(json.dumps({"run_dir": str(run.root), "version": summary.get("version"),
                       "updates": summary.get("updates")}))
     return 0
