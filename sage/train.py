@@ -345,8 +345,8 @@ def resume_note(cfg: TrainConfig, run: RunDir) -> str | None:
     if not cfg.resume:
         return None
     ck = load_latest(run.checkpoints)
-    if ck is None:
-        return None
+    if not isinstance(ck, dict) or not {"version", "updates", "env_steps"} <= set(ck):
+        return None   # nothing the learner can resume (it says why itself)
     budget = f" of {cfg.updates}" if cfg.updates < UNBOUNDED_UPDATES else ""
     return (f"resuming run {cfg.run_id} from checkpoint version {int(ck['version'])} "
             f"(update {int(ck['updates'])}{budget}, {int(ck['env_steps'])} env steps) in {run.checkpoints}")
