@@ -33,7 +33,7 @@ from common.safety_rows import SafetyRows
 from common.wire import traj_batch
 from services.base import RateMeter, Service
 from services.config import DEPLOY_PROBE_SEED
-from services.learner.tracking import EventFile, tensorboard_available  # noqa: F401 - tensorboard_available: sage.train
+from services.learner.tracking import EventFile, tensorboard_available, x_of  # noqa: F401 - tensorboard_available: sage.train
 
 
 CHUNK_OUTCOMES = ("used", "stale", "incarnation", "shape", "future", "actor_id", "overflow", "queue_full",
@@ -76,7 +76,7 @@ class MetricsLog:
         self.events: EventFile | None = None
         if tensorboard and tensorboard_available():
             # purge from the first env step after the kept rows (the rolled-back updates' steps)
-            purge = None if upto is None else (int(self.rows[-1].get("env_steps") or 0) + 1 if self.rows else 0)
+            purge = None if upto is None else (x_of(self.rows[-1]) + 1 if self.rows else 0)
             self.events = EventFile(run.tensorboard, events_suffix, purge, config)
 
     def _rewrite_csv(self) -> None:
