@@ -49,6 +49,14 @@ def run_endpoint(run_dir: str | Path, connect: list[str] | None):
     return cfg, endpoints
 
 
+def stale_note(age_s: float | None, period_s: float) -> str:
+    """What the table's header adds when no trace came for a while (a run cut off
+    without a word: its table stops moving), else nothing."""
+    if age_s is None or age_s <= max(5.0, 3 * period_s):
+        return ""
+    return f"  (no new trace for {age_s:.0f} s)"
+
+
 def run_ended(run: RunDir, since: float = 0.0) -> str | None:
     """Why the run is over, from its supervisor's events on this host (a
     ``supervisor_exit`` after the last ``supervisor_start``, written at or after
@@ -72,6 +80,7 @@ def cmd_watch(args) -> int:
     live = LiveOccupancy(window=args.window, depth=cfg.algo_config().tree_depth)
     rejected: Counter[str] = Counter()   # by reason: counted and shown, never fatal
     learner_state: dict[str, str] = {}
+    last_trace = [None]   # monotonic time of the newest accepted trace
     lock = threading.Lock()
 
     def on_trace(_key: str, payload: bytes) -> None:
@@ -83,6 +92,7 @@ def cmd_watch(args) -> int:
         with lock:
             try:
                 live.add(msg.body)
+                last_trace[0] = time.monotonic()
             except ValueError:   # decodes, but cannot be this run's trees (e.g. a leaf out of range)
                 rejected["out_of_range"] += 1
 
@@ -118,7 +128,9 @@ def cmd_watch(args) -> int:
                       file=out, flush=True)
                 break
             with lock:
-                lines = [f"run {cfg.run_id}  {time.strftime('%H:%M:%S')}", *live.table()]
+                age = None if last_trace[0] is None else time.monotonic() - last_trace[0]
+                lines = [f"run {cfg.run_id}  {time.strftime('%H:%M:%S')}{stale_note(age, args.period)}",
+                         *live.table()]
             if rejected:
                 by_reason = ", ".join(f"{k} {v}" for k, v in sorted(rejected.items()))
                 lines.append(f"rejected trace messages: {sum(rejected.values())} ({by_reason})")

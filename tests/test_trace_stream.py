@@ -248,3 +248,11 @@ def test_sage_watch_says_the_run_ended_and_exits_0(tmp_path, how):
     assert any("leaf 3" in x for x in seen)   # it showed the live table until then
     last = out.strip().splitlines()[-1]
     assert last.startswith("run watched ended (") and ("learner finished" if how == "supervisor" else "done") in last
+
+
+def test_a_table_that_stopped_moving_says_so():
+    from sage.watch import stale_note
+
+    assert stale_note(None, 1.0) == "" and stale_note(2.0, 1.0) == "" and stale_note(5.0, 1.0) == ""
+    assert stale_note(12.4, 1.0) == "  (no new trace for 12 s)"
+    assert stale_note(12.4, 5.0) == ""   # within three redraw periods
