@@ -24,6 +24,8 @@ def budget_part(learner: dict, eta_s: float | None = None) -> str | None:
         return None
     extra = learner.get("extra", {})
     n, budget, prog = int(learner.get("updates", 0)), extra.get("budget_updates"), extra.get("progress")
+    if prog is not None and prog >= 1.0:
+        eta_s = 0.0   # the budget is spent
     text = f"update {n}/{int(budget)}" if budget and budget < UNBOUNDED_UPDATES else f"update {n}"
     if prog is not None:
         text += f" ({100 * prog:.0f}%)"
@@ -137,11 +139,17 @@ class StatusBoard:
             return None
         return (now - t0) / (prog - p0) * (1.0 - prog)
 
-    def line(self) -> str:
+    def line(self, own: dict[str, dict] | None = None) -> str:
+        """The status line; ``own``: members' bodies known first-hand (an in-process
+        run's final line takes the learner's own final state, not a heartbeat that may
+        still be on its way)."""
         eta = self.eta()
         with self._lock:
             latest = dict(self.latest)
-        return status_line(self.fresh(), latest, eta)
+        fresh = self.fresh()
+        for k, body in (own or {}).items():
+            latest[k] = fresh[k] = {**latest.get(k, {}), **body}
+        return status_line(fresh, latest, eta)
 
     def close(self) -> None:
         if self._own_bus and self._bus is not None:
