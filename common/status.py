@@ -12,8 +12,29 @@ from common import keys, wire
 from common.transport import Bus, TlsFiles
 
 
-def status_line(fresh: dict[str, dict], latest: dict[str, dict] | None = None) -> str:
-    """One line from the heartbeats: env steps/s (sum over actors heard from
+# a learner budget of this many updates or more is "no update budget" (a --minutes run)
+UNBOUNDED_UPDATES = 10**8
+
+
+def budget_part(learner: dict, eta_s: float | None = None) -> str | None:
+    """``update 37/100 (37%), ETA 1m05s`` from the learner's heartbeat (``updates``,
+    extra ``budget_updates`` and ``progress``, the share of the budget spent, updates
+    or minutes); None without a learner heard from."""
+    if not learner:
+        return None
+    extra = learner.get("extra", {})
+    n, budget, prog = int(learner.get("updates", 0)), extra.get("budget_updates"), extra.get("progress")
+    if prog is not None and prog >= 1.0:
+        eta_s = 0.0   # the budget is spent
+    text = f"update {n}/{int(budget)}" if budget and budget < UNBOUNDED_UPDATES else f"update {n}"
+    if prog is not None:
+        text += f" ({100 * prog:.0f}%)"
+    return text + f", ETA {format_duration(eta_s)}"
+
+
+def status_line(fresh: dict[str, dict], latest: dict[str, dict] | None = None, eta_s: float | None = None) -> str:
+    """One line from the heartbeats: the learner's updates out of its budget with the
+    ETA ``eta_s`` (``StatusBoard.eta``), env steps/s (sum over actors heard from
     recently, ``fresh``), parameter version (learner), recent success rate
     (learner, else the actors' mean), the learner's last deterministic
     deployment probe (if any), shield p99 solve latency (slowest shard), unhealthy
@@ -31,8 +52,9 @@ def status_line(fresh: dict[str, dict], latest: dict[str, dict] | None = None) -
         sr = sum(srs) / len(srs) if srs else None
     p99 = max(shield_p99) if shield_p99 else None   # the slowest shard
     deploy_sr = learner.get("extra", {}).get("deploy_sr")   # the learner's deterministic probe
-    parts = [f"steps/s {sps:8.1f}", f"version {learner.get('version', -1)}",
-             f"SR {sr:.2f}" if sr is not None else "SR -"]
+    budget = budget_part(learner, eta_s)
+    parts = ([budget] if budget else []) + [
+        f"steps/s {sps:8.1f}", f"version {learner.get('version', -1)}", f"SR {sr:.2f}" if sr is not None else "SR -"]
     if deploy_sr is not None:
         parts.append(f"deploy SR {deploy_sr:.2f}")
     parts += [f"shield p99 {p99 * 1e3:.2f} ms" if p99 is not None else "shield p99 -",
@@ -48,9 +70,11 @@ class StatusBoard:
     subscription on ``sage/<run>/status/**``: on a bus it is given (``attach``,
     in-process) or on its own client session (``subscribe``, supervisor)."""
 
-    def __init__(self, run_id: str, stale_after_s: float = 5.0):
+    def __init__(self, run_id: str, stale_after_s: float = 5.0, clock=time.monotonic):
         self.run_id = run_id
         self.stale_after_s = stale_after_s
+        self.clock = clock               # monotonic seconds (a fake one in tests)
+        self._progress0: tuple | None = None   # (learner pid, time, progress) first heard: the ETA's start
         self.latest: dict[str, dict] = {}
         self.rejected = 0
         self._lock = threading.Lock()
@@ -63,7 +87,7 @@ class StatusBoard:
         except wire.WireError:
             self.rejected += 1  # shown in status.json; a bad heartbeat never stops a run
             return
-        body = dict(msg.body, received=time.monotonic())
+        body = dict(msg.body, received=self.clock())
         with self._lock:
             self.latest[f"{body['role']}/{body['id']}"] = body
 
@@ -84,7 +108,7 @@ class StatusBoard:
                 "control", {"command": "stop", "target": "*"}, run_id=self.run_id, sender="supervisor/0", seq=0))
 
     def fresh(self) -> dict[str, dict]:
-        now = time.monotonic()
+        now = self.clock()
         with self._lock:
             return {k: b for k, b in self.latest.items() if now - b["received"] <= self.stale_after_s}
 
@@ -96,10 +120,36 @@ class StatusBoard:
     def snapshot(self) -> dict:
         return {"members": self.members(), "rejected": self.rejected, "line": self.line()}
 
-    def line(self) -> str:
+    def eta(self) -> float | None:
+        """Seconds until the learner's budget is spent, at the rate its progress moved
+        since this board first heard the current learner process (a restarted learner
+        starts the measurement again); None before it has moved."""
+        with self._lock:
+            learner = self.latest.get("learner/0")
+        prog = (learner or {}).get("extra", {}).get("progress")
+        if prog is None:
+            return None
+        now = self.clock()
+        if self._progress0 is None or self._progress0[0] != learner.get("pid"):
+            self._progress0 = (learner.get("pid"), now, prog)
+        _, t0, p0 = self._progress0
+        if prog >= 1.0:
+            return 0.0
+        if prog <= p0 or now <= t0:
+            return None
+        return (now - t0) / (prog - p0) * (1.0 - prog)
+
+    def line(self, own: dict[str, dict] | None = None) -> str:
+        """The status line; ``own``: members' bodies known first-hand (an in-process
+        run's final line takes the learner's own final state, not a heartbeat that may
+        still be on its way)."""
+        eta = self.eta()
         with self._lock:
             latest = dict(self.latest)
-        return status_line(self.fresh(), latest)
+        fresh = self.fresh()
+        for k, body in (own or {}).items():
+            latest[k] = fresh[k] = {**latest.get(k, {}), **body}
+        return status_line(fresh, latest, eta)
 
     def close(self) -> None:
         if self._own_bus and self._bus is not None:

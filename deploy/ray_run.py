@@ -144,9 +144,7 @@ def connect(address: str, local_cpus: int | None = None):
     its driver, once per process; the ``ray`` module. ``local`` starts a fresh
     one-machine instance with ``local_cpus`` logical CPUs (default: the cores). A
     ``ClusterError`` with one line when Ray is missing or nothing answers there."""
-    ray = import_ray()
-    if ray.is_initialized():
-        return ray
+    # the address's form first: a malformed one is refused the same with or without Ray
     address = address.strip()
     if address.startswith("ray://"):
         raise ClusterError(f"--ray {address}: Ray Client addresses are not supported; run sage on a node of "
@@ -155,6 +153,10 @@ def connect(address: str, local_cpus: int | None = None):
         host, sep, port = address.rpartition(":")
         if not sep or not host or not port.isdigit():
             raise ClusterError(f"--ray {address!r}: expected auto, local or HOST:PORT (the head's GCS address)")
+    ray = import_ray()
+    if ray.is_initialized():
+        return ray
+    if address not in ("auto", "local"):
         # ray.init() waits minutes for a GCS that is not there: fail fast instead
         try:
             with socket.create_connection((host, int(port)), timeout=5.0):

@@ -29,12 +29,15 @@ _DEFAULTS = AuditConfig()
 
 def register(commands, bench) -> None:
     p = commands.add_parser("tree", help="show or export a carrier's hard tree with named predicates")
-    p.add_argument("action", choices=["show", "export"], help="show prints (text/json/dot); export writes --out")
+    p.add_argument("action", choices=["show", "export"],
+                   help="show prints text/json/dot on stdout (or writes --out); export writes a file; "
+                        "png is always a file")
     p.add_argument("policy", help="checkpoint, run directory, flat params .npz/.json, or bundle trees.json")
     p.add_argument("--carrier", type=nonneg_int, default=0)
     p.add_argument("--format", choices=["text", "json", "dot", "png"], default="text")
     p.add_argument("--eval-log", default=None, help="a recording (.npz) whose leaf visits to count")
-    p.add_argument("--out", default=None, help="output file (required for png)")
+    p.add_argument("--out", default=None,
+                   help="output file (default for png and export: tree_carrier<N>.<format> in the current directory)")
     p.add_argument("--top-terms", type=positive_int, default=_DEFAULTS.top_terms)
     p.set_defaults(func=_tree)
 

@@ -1,7 +1,7 @@
 """``sage compare LABEL=DIR ...``: one setting against others, measured the
 same way. Each DIR is a ``sage suite --out`` directory (same methods,
 scenarios and seeds, one ``--set`` apart, e.g. ``algo.split_k``); the table
-gives, per variant, each deployment metric's mean over runs with a 95%
+gives, per variant and method (one row each: methods are never pooled), each deployment metric's mean over runs with a 95%
 bootstrap CI over runs stratified by scenario (``sage.report.bootstrap_ci``),
 the episode-pooled success rate with its Wilson interval, and how readable the
 trees are: non-zero features per split, read from each run's checkpoint.
@@ -14,9 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
+from common.algos.registry import ALL_METHODS
 from common.audit.params import split_carriers
 from sage.errors import UsageError
-from sage.report import bootstrap_ci, load_results, run_value
+from sage.report import METHOD_TITLES, bootstrap_ci, load_results, run_value
 from sage.runs import load_run
 
 METRICS = (("success_rate", "SR", 100.0, "%"), ("margin_col_per_1k", "margin Col./1k", 1.0, ""),
@@ -40,13 +41,21 @@ def split_sparsity(run_dir: str | Path) -> float:
     return float(np.mean([(t.W != 0).sum(axis=1).mean() for t in split_carriers(params)]))
 
 
-def variant_row(label: str, out_dir: Path) -> dict:
+def variant_rows(label: str, out_dir: Path) -> list[dict]:
+    """One row per method of the suite in ``out_dir`` (methods are never pooled: a
+    suite of HAPPO and SAGE runs is two rows), in the registry's method order."""
     paths = sorted(out_dir.glob("*.json"))
     results = [r for r in load_results(p for p in paths if p.name != "suite_config.json")]
     if not results:
         raise UsageError(f"{label}={out_dir}: no run results (*.json from `sage suite --out`)")
+    methods = [m for m in ALL_METHODS if any(r.method == m for r in results)]
+    return [method_row(label, m, [r for r in results if r.method == m], out_dir) for m in methods]
+
+
+def method_row(label: str, method: str, results: list, out_dir: Path) -> dict:
+    """The row of one method's runs of a variant."""
     strata = [r.scenario for r in results]
-    row = {"variant": label, "runs": len(results), "scenarios": sorted(set(strata)),
+    row = {"variant": label, "method": method, "runs": len(results), "scenarios": sorted(set(strata)),
            "overrides": sorted({o for r in results for o in r.budget.get("overrides", [])})}
     for key, *_ in METRICS:
         values = [run_value(r, key) for r in results]
@@ -70,18 +79,20 @@ def _cell(row: dict, key: str, scale: float, unit: str) -> str:
 
 
 def markdown(rows: list[dict]) -> str:
-    head = ["variant", "runs", "features / split", *[m[1] for m in METRICS], "SR, pooled episodes (Wilson)"]
+    head = ["variant", "method", "runs", "features / split", *[m[1] for m in METRICS], "SR, pooled episodes (Wilson)"]
     out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for row in rows:
         lo, hi = row["success_rate_wilson"]
-        out.append("| " + " | ".join([row["variant"], str(row["runs"]), f"{row['features_per_split']:.2f}",
+        out.append("| " + " | ".join([row["variant"], METHOD_TITLES[row["method"]], str(row["runs"]),
+                                      f"{row['features_per_split']:.2f}",
                                       *[_cell(row, *m[0:1], *m[2:]) for m in METRICS],
                                       f"{100 * lo:.1f}–{100 * hi:.1f}% of {row['episodes']}"]) + " |")
     scen = sorted({s for r in rows for s in r["per_scenario_sr"]})
-    out += ["", "| variant | " + " | ".join(f"SR {s}" for s in scen) + " |", "|---|" + "---|" * len(scen)]
+    out += ["", "| variant | method | " + " | ".join(f"SR {s}" for s in scen) + " |",
+            "|---|---|" + "---|" * len(scen)]
     for row in rows:
-        out.append(f"| {row['variant']} | " + " | ".join(f"{100 * row['per_scenario_sr'].get(s, float('nan')):.1f}%"
-                                                         for s in scen) + " |")
+        out.append(f"| {row['variant']} | {METHOD_TITLES[row['method']]} | " + " | ".join(
+            f"{100 * row['per_scenario_sr'].get(s, float('nan')):.1f}%" for s in scen) + " |")
     return "\n".join(out)
 
 
@@ -99,7 +110,7 @@ def cmd_compare(args) -> int:
         if not sep or not label or not Path(folder).is_dir():
             raise UsageError(f"{item!r}: expected LABEL=DIR with DIR a `sage suite --out` directory")
         try:
-            rows.append(variant_row(label, Path(folder)))
+            rows += variant_rows(label, Path(folder))
         except ValueError as exc:
             raise UsageError(str(exc)) from None
     print(json.dumps(rows, indent=1) if args.json else markdown(rows))

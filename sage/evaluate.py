@@ -210,5 +210,7 @@ def register(commands, bench) -> None:
     p.add_argument("--video-width", type=positive_int, default=480, help="frame width in pixels, 160..640")
     p.add_argument("--video-fps", type=positive_float, default=None,
                    help="frames per second (default: real time, 1 / (control_dt * every))")
-    p.add_argument("--json", action="store_true")
+    p.add_argument("--json", action="store_true",
+                   help="print the evaluation record (every deployment metric) as one JSON object on stdout "
+                        "instead of the summary line; progress stays on stderr")
     p.set_defaults(func=run_eval_command)

@@ -465,8 +465,9 @@ def table_markdown(summary: dict) -> str:
                   "", "W_gap and cos(g_ind, g_team) at the first minibatch of each update before any step (`_first`)"
                   " and over all minibatches (`_mean`), the same points for every method; `talo_condition_met`: share"
                   " of applied TALO steps meeting Eq. talo_condition; proposal violation and ||Q(a_ST) - a_ST||"
-                  " (`correction_st`) of the training batches; margin Col./1k: training steps with a barrier of the"
-                  ".", "",
+                  " (`correction_st`) of the training batches; margin Col./1k: training steps per 1,000 with a"
+                  " barrier of the shield's own specification (a carrier disc or payload point within its safety"
+                  " margin of a wall) below 0.", "",
                   "| Method | " + " | ".join(present) + " |", "|" + "---|" * (1 + len(present))]
         for m in methods:
             o = summary["overall"][m]
@@ -494,6 +495,26 @@ def _curves(results: list[Result], method: str, key: str) -> tuple[np.ndarray, n
         return grid, np.full_like(grid, np.nan), np.full_like(grid, np.nan)
     ys = np.stack(ys)
     return grid, ys.mean(0), ys.std(0)
+
+
+# Fig. payload_panels: (eval key, title, y-axis label with its unit; common/env/batch_env.py's episode metrics)
+PAYLOAD_PANELS = [("tilt", "(a) payload tilt", "mean tilt per step (deg)"),
+                  ("heading_error", "(b) heading error", "mean |route tangent − yaw| (rad)"),
+                  ("height_error", "(c) height error", "mean |height − carry height| (m)"),
+                  ("completion_time", "(d) completion time", "time to goal, successes (s)")]
+
+
+def probe_points(results: list[Result], method: str) -> list[tuple[float, float]]:
+    """(progress, deployment-probe SR) of every finite probe the method's runs logged."""
+    out = []
+    for r in results:
+        if r.method != method:
+            continue
+        for p in r.train_curve:
+            x, y = p.get("progress"), p.get("deploy_success_rate", p.get("deploy_sr"))
+            if x is not None and y is not None and np.isfinite(y):
+                out.append((float(x), float(y)))
+    return out
 
 
 def write_figures(results: list[Result], summary: dict, out_dir: Path) -> list[Path]:
@@ -541,47 +562,64 @@ def write_figures(results: list[Result], summary: dict, out_dir: Path) -> list[P
 
     # Fig. reward_drop: training curves of return and drop rate, plus (where the learner
     # logged it) the deterministic deployment probe, which can differ from training SR.
-    panels = [("episode_return", "(a) episode return"), ("drop_rate", "(b) drop rate")]
-    if any("deploy_sr" in p for r in results for p in r.train_curve):
-        panels.append(("deploy_success_rate", "(c) deployment SR (probe: trees + exact QP)"))
+    panels = [("episode_return", "(a) episode return", "team return per episode"),
+              ("drop_rate", "(b) drop rate", "share of episodes dropped")]
+    if any(probe_points(results, m) for m in methods):
+        panels.append(("deploy_success_rate", "(c) deployment SR (probe: trees + exact QP)",
+                       "probe success rate"))
     fig, axes = plt.subplots(1, len(panels), figsize=(4.5 * len(panels), 3.4))
-    for (key, title), ax in zip(panels, axes):
+    for (key, title, ylabel), ax in zip(panels, axes):
         for m in methods:
             g, mu, sd = _curves(results, m, key)
             lo, hi = (mu - sd, mu + sd) if key == "episode_return" else (np.clip(mu - sd, 0, 1), np.clip(mu + sd, 0, 1))
             ax.plot(g, mu, color=colors[m], label=METHOD_TITLES[m]); ax.fill_between(g, lo, hi, color=colors[m], alpha=0.15)
-        ax.set_title(title, fontsize=9); ax.set_xlabel("training progress")
+            pts = probe_points(results, m) if key == "deploy_success_rate" else []
+            if pts and not np.isfinite(mu).any():
+                # the probe runs every deploy_probe_every updates: runs too short for two
+                # probes have no curve, so their probes are drawn as points
+                x, y = zip(*pts)
+                ax.plot(x, y, "o", ms=4, color=colors[m], alpha=0.7)
+        ax.set_title(title, fontsize=9); ax.set_xlabel("training progress (share of the budget)")
+        ax.set_ylabel(ylabel, fontsize=8); ax.set_xlim(-0.02, 1.02)
+        if key != "episode_return":
+            ax.set_ylim(-0.03, 1.03)
     axes[0].legend(fontsize=7)
     fig.tight_layout(); path = out_dir / "reward_drop.png"; fig.savefig(path, dpi=130); plt.close(fig)
     written.append(path)
 
     # Fig. sail_talo_ablation: mechanism panels (a)-(d).
-    panels = [("proposal_violation", "(a) proposal violation"), ("correction", "(b) proposal–execution correction"),
-              ("w_gap", "(c) $W_{gap}$"), ("cos_ind_team", "(d) cos($g_{ind}$, $g_{team}$)")]
+    panels = [("proposal_violation", "(a) proposal violation", "share of steps with a row violated"),
+              ("correction", "(b) proposal–execution correction", "mean ‖a_exec − a_prop‖"),
+              ("w_gap", "(c) $W_{gap}$", "$W_{gap}$ (Eq. talo_gap)"),
+              ("cos_ind_team", "(d) cos($g_{ind}$, $g_{team}$)", "cosine")]
     fig, axes = plt.subplots(2, 2, figsize=(9, 6))
-    for ax, (key, title) in zip(axes.flat, panels):
+    for ax, (key, title, ylabel) in zip(axes.flat, panels):
         for m in methods:
             if not METHOD_SPECS[m].shielded:
                 continue
             g, mu, sd = _curves(results, m, key)
             ax.plot(g, mu, color=colors[m], label=METHOD_TITLES[m]); ax.fill_between(g, mu - sd, mu + sd, color=colors[m], alpha=0.15)
-        ax.set_title(title, fontsize=9); ax.set_xlabel("training progress")
+        ax.set_title(title, fontsize=9); ax.set_xlabel("training progress (share of the budget)")
+        ax.set_ylabel(ylabel, fontsize=8)
     if axes[0, 0].get_legend_handles_labels()[0]:
         axes[0, 0].legend(fontsize=7)
     fig.tight_layout(); path = out_dir / "sail_talo_ablation.png"; fig.savefig(path, dpi=130); plt.close(fig)
     written.append(path)
 
     # Fig. payload_panels: execution-level quality per method.
-    keys = [("tilt", "(a) payload tilt"), ("heading_error", "(b) heading error"),
-            ("height_error", "(c) height error"), ("completion_time", "(d) completion time")]
-    fig, axes = plt.subplots(1, 4, figsize=(12, 3))
-    for ax, (key, title) in zip(axes, keys):
+    fig, axes = plt.subplots(1, 4, figsize=(12, 3.6))
+    for ax, (key, title, unit) in zip(axes, PAYLOAD_PANELS):
         mus = [summary["overall"][m][key]["mean"] for m in methods]
         sds = [summary["overall"][m][key]["std"] for m in methods]
-        ax.bar(range(len(methods)), mus, yerr=sds, color=[colors[m] for m in methods], capsize=2)
+        bars = ax.bar(range(len(methods)), mus, yerr=sds, color=[colors[m] for m in methods], capsize=2)
+        for b, m in zip(bars, methods):
+            b.set_label(METHOD_TITLES[m])
         ax.set_xticks(range(len(methods))); ax.set_xticklabels([METHOD_TITLES[m] for m in methods], rotation=45, fontsize=7)
-        ax.set_title(title, fontsize=9)
-    fig.tight_layout(); path = out_dir / "payload_panels.png"; fig.savefig(path, dpi=130); plt.close(fig)
+        ax.set_title(title, fontsize=9); ax.set_ylabel(unit, fontsize=8)
+    fig.legend(*axes[0].get_legend_handles_labels(), loc="upper center", ncol=len(methods), fontsize=7,
+               title="deployment evaluation, mean ± std across runs (lower is better)", title_fontsize=7)
+    fig.tight_layout(rect=(0, 0, 1, 0.86)); path = out_dir / "payload_panels.png"; fig.savefig(path, dpi=130)
+    plt.close(fig)
     written.append(path)
     return written
 

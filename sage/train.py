@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from common.algos.registry import method_spec
-from common.checkpoint import list_checkpoints, load_checkpoint
+from common.checkpoint import list_checkpoints, load_checkpoint, load_latest
 from common.evaluation.deployment import evaluate_policy
 from common.policy.tree_torch import policy_params_from_checkpoint
 from common.rundir import RunDir, atomic_write_text
@@ -32,7 +32,8 @@ from sage.errors import UsageError, nonneg_int, one_line, port, positive_int, us
 from sage.runs import last_progress, load_run, read_config
 from services.config import FINAL_EVAL_SEED, UNLIMITED_UPDATES, TrainConfig
 from services.launcher import ROLES, run_inprocess
-from services.learner.service import tensorboard_available
+from services.learner.tracking import (WANDB_HINT, MetricsTail, TrackingConfig, WandbRun, tensorboard_available,
+                                       wandb_available)
 
 
 # Flags of `sage train` that set a TrainConfig field of the same name: derived from the
@@ -97,6 +98,7 @@ def register(commands, bench) -> None:
                         "--set shield.window_s=0.001 --set train.deploy_probe_every=10 (value parsed as JSON, else string)")
     p.add_argument("--quiet", action="store_true", help="no live progress line")
     add_ray_arguments(p, "implies --mode ray; default with --mode ray: auto")
+    add_tracking_arguments(p)
     p.set_defaults(func=cmd_train)
 
     p = commands.add_parser("up", help="run learner, shield and actors as supervised processes (restarts, "
@@ -113,6 +115,47 @@ def add_ray_arguments(p, note: str) -> None:
     p.add_argument("--ray-resources", action="append", default=[], metavar="SERVICE=RESOURCE:AMOUNT",
                    help="extra Ray resources of a service (actor-1) or role (actor), e.g. to pin it to the nodes "
                         "that have a custom resource: --ray-resources learner=gpu_host:1 (repeatable)")
+
+
+def add_tracking_arguments(p) -> None:
+    """``--track`` (Weights & Biases) and its project/entity/group (``TrackingConfig``)."""
+    d = TrackingConfig()
+    p.add_argument("--track", action="store_true",
+                   help="also log the run to Weights & Biases (metrics by section against env steps, the resolved "
+                        f"config, the final evaluation; extra: {WANDB_HINT}); WANDB_MODE=offline needs no network")
+    p.add_argument("--wandb-project", default=d.project, help="W&B project (default %(default)s)")
+    p.add_argument("--wandb-entity", default=d.entity, help="W&B entity (default: your W&B default)")
+    p.add_argument("--wandb-group", default=d.group, help="W&B group, e.g. a suite's name")
+
+
+def tracking_config(args) -> TrackingConfig | None:
+    """The W&B settings of ``--track`` (None without it); no wandb installed is a ``UsageError``."""
+    if not getattr(args, "track", False):
+        return None
+    if not wandb_available():
+        raise UsageError(f"--track logs to Weights & Biases, which is not installed: {WANDB_HINT}")
+    return TrackingConfig(project=args.wandb_project, entity=args.wandb_entity, group=args.wandb_group)
+
+
+def start_tracking(track: TrackingConfig | None, cfg: TrainConfig, run: RunDir):
+    """A W&B run fed from the run's metrics file by a ``MetricsTail`` thread, or None."""
+    if track is None:
+        return None
+    try:
+        wb = WandbRun(track, cfg.run_id, run.root, json.loads(cfg.to_json()))
+    except Exception as exc:  # noqa: BLE001 - wandb's own errors (no login, no network): one line
+        raise UsageError(f"--track: Weights & Biases did not start a run ({one_line(exc)}); "
+                         "WANDB_MODE=offline logs locally without an account") from None
+    print(f"wandb: run {cfg.run_id} in project {track.project} ({wb.run.settings.mode} mode, "
+          f"files in {wb.run.dir})", file=sys.stderr)
+    return wb, MetricsTail(run.metrics_jsonl, wb.log, track.poll_s).start()
+
+
+def stop_tracking(tracking, summary: dict | None) -> None:
+    if tracking is not None:
+        wb, tail = tracking
+        tail.stop()
+        wb.finish(summary)
 
 
 def ray_placement(args, max_restarts: int | None = None) -> RayPlacement:
@@ -243,8 +286,9 @@ def cmd_train(args) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     cfg = config_from_args(args)
     mode = train_mode(args, cfg)
+    track = tracking_config(args)
     placement = ray_placement(args) if mode == "ray" else None
-    code, summary = train_run(cfg, mode, progress=not args.quiet, placement=placement)
+    code, summary = train_run(cfg, mode, progress=not args.quiet, placement=placement, track=track)
     if summary is None:
         return code
     print(json.dumps({"run_dir": str(cfg.run_dir), "version": summary.get("version"),
@@ -253,7 +297,7 @@ def cmd_train(args) -> int:
 
 
 def train_run(cfg: TrainConfig, mode: str = "inprocess", progress: bool = True,
-              placement: RayPlacement | None = None) -> tuple[int, dict | None]:
+              placement: RayPlacement | None = None, track: TrackingConfig | None = None) -> tuple[int, dict | None]:
     """Train the resolved ``cfg`` (``sage train``'s work, also ``sage.api.train``'s): write the
     run directory, run the services where ``mode`` says, evaluate and write ``summary.json``.
     Returns (exit code, summary; None when nothing was trained)."""
@@ -268,24 +312,60 @@ def train_run(cfg: TrainConfig, mode: str = "inprocess", progress: bool = True,
     cfg_path = save_run_config(cfg, run)
     print(f"run {cfg.run_id}: {cfg.method} on {cfg.scenario}, {cfg.actors} actor(s) x {cfg.envs_per_actor} envs, "
           f"mode {mode}, run dir {run.root}", file=sys.stderr)
+    resuming = resume_note(cfg, run)
+    if resuming:
+        print(resuming, file=sys.stderr)
     if cfg.tensorboard:   # the learner writes event files when tensorboardX imports
         print(f"tensorboard: events in {run.tensorboard}" if tensorboard_available() else
               "tensorboard: off (pip install 'sage-transport[tensorboard]' for event files)", file=sys.stderr)
-    if mode in ("supervised", "ray"):
-        code = int(run_supervised(str(cfg_path)) or 0) if mode == "supervised" else \
-            run_ray(cfg_path, placement)
-        if code:
-            return code, None
-        try:
-            _, params, version = load_run(run.root)
-        except FileNotFoundError:
-            params, version = None, None
-        summary = {"mode": mode, "version": version, **last_progress(run)}
-    else:
-        out = run_inprocess(cfg, progress=progress)
-        params = out.pop("params")
-        out.pop("status", None)
-        summary = {"mode": "inprocess", **out}
+    tracking, summary = start_tracking(track, cfg, run), None
+    try:
+        if mode in ("supervised", "ray"):
+            code = int(run_supervised(str(cfg_path)) or 0) if mode == "supervised" else \
+                run_ray(cfg_path, placement)
+            if code:
+                return code, None
+            summary, params = supervised_summary(run, mode)
+        else:
+            out = run_inprocess(cfg, progress=progress)
+            params = out.pop("params")
+            out.pop("status", None)
+            summary = {"mode": "inprocess", **out}
+        if track is not None:
+            summary["tracking"] = {"wandb": {"project": track.project, "run": cfg.run_id,
+                                             "dir": tracking[0].run.dir}}
+        write_summary(cfg, run, summary, params)
+    finally:
+        stop_tracking(tracking, summary)
+    return 0, summary
+
+
+def resume_note(cfg: TrainConfig, run: RunDir) -> str | None:
+    """``resuming run X from checkpoint version V (update U of N)`` when the learner
+    will resume a checkpoint of this run directory; None for a fresh run."""
+    if not cfg.resume:
+        return None
+    ck = load_latest(run.checkpoints)
+    if not isinstance(ck, dict) or not {"version", "updates", "env_steps"} <= set(ck):
+        return None   # nothing the learner can resume (it says why itself)
+    budget = f" of {cfg.updates}" if cfg.updates < UNLIMITED_UPDATES else ""
+    return (f"resuming run {cfg.run_id} from checkpoint version {int(ck['version'])} "
+            f"(update {int(ck['updates'])}{budget}, {int(ck['env_steps'])} env steps) in {run.checkpoints}")
+
+
+def supervised_summary(run: RunDir, mode: str) -> tuple[dict, dict | None]:
+    """(summary, newest tree params) of a run whose learner ran in another process:
+    its newest checkpoint and its last metrics row."""
+    try:
+        _, params, version = load_run(run.root)
+    except FileNotFoundError:
+        params, version = None, None
+    return {"mode": mode, "version": version, **last_progress(run)}, params
+
+
+def write_summary(cfg: TrainConfig, run: RunDir, summary: dict, params: dict | None) -> dict:
+    """The final deployment evaluation (``cfg.eval_episodes`` > 0; ``final_evals``) into
+    ``summary``, the evaluated tree parameters beside it, ``summary.json`` written atomically."""
     if cfg.eval_episodes > 0 and params is not None:
         summary["eval"], evaluated = final_evals(cfg, params, summary.get("version"))
         if len(evaluated) > 1:
@@ -297,7 +377,7 @@ def train_run(cfg: TrainConfig, mode: str = "inprocess", progress: bool = True,
               f"SR {e['success_rate']:.2f}  return {e['return_mean']:.2f}  col/1k {e['col_per_1k']:.2f}  "
               f"intervention {e['intervention_rate']:.2f}", file=sys.stderr)
     atomic_write_text(run.summary, json.dumps(summary, indent=2, default=_num) + "\n")
-    return 0, summary
+    return summary
 
 
 def save_evaluated_params(run: RunDir, evaluated: list[dict]) -> Path:
@@ -441,14 +521,30 @@ def cmd_up(args) -> int:
                              f"ids 0..{cfg.actors - 1}")
     if args.ray_resources and args.ray is None:
         raise UsageError("--ray-resources places services on a Ray cluster: use it with --ray ADDRESS")
+    run = RunDir(cfg.run_dir)
     if args.ray is not None:
         placement = ray_placement(args, max_restarts=args.restart_budget)
         join_cluster(placement, cfg, roles, ids)
-        return run_ray(save_run_config(cfg, RunDir(cfg.run_dir)), placement, roles=roles, actor_ids=ids)
-    path = save_run_config(cfg, RunDir(cfg.run_dir))
-    try:
-        return run_supervised(path, roles=roles, actor_ids=ids,
-                              supervisor=SupervisorConfig(restart_budget=args.restart_budget))
-    except RuntimeError as exc:  # e.g. the local router never came up
-        print(f"sage up: {exc}", file=sys.stderr)
-        return EXIT_GAVE_UP
+        path = save_run_config(cfg, run)
+        _say_resuming(cfg, run, roles)
+        code = run_ray(path, placement, roles=roles, actor_ids=ids)
+    else:
+        path = save_run_config(cfg, run)
+        _say_resuming(cfg, run, roles)
+        try:
+            code = run_supervised(path, roles=roles, actor_ids=ids,
+                                  supervisor=SupervisorConfig(restart_budget=args.restart_budget))
+        except RuntimeError as exc:  # e.g. the local router never came up
+            print(f"sage up: {exc}", file=sys.stderr)
+            return EXIT_GAVE_UP
+    if code == 0 and "learner" in roles:
+        # the host of the learner writes what `sage train` writes: summary.json with the final evaluation
+        summary, params = supervised_summary(run, "ray" if args.ray is not None else "supervised")
+        write_summary(cfg, run, summary, params)
+    return code
+
+
+def _say_resuming(cfg: TrainConfig, run: RunDir, roles) -> None:
+    note = resume_note(cfg, run) if "learner" in roles else None
+    if note:
+        print(note, file=sys.stderr)

@@ -131,7 +131,7 @@ class ActorConfig:
 
 # Resource bounds of a run (memory and message sizes grow with their product):
 MAX_SAMPLES_PER_CHUNK = 1 << 18     # K x T of one actor's chunk (a chunk is one wire message)
-UNLIMITED_UPDATES = 10**9           # a wall-clock budget alone: train until the minutes are spent
+UNLIMITED_UPDATES = 10**9   # a wall-clock budget alone (>= common.status.UNBOUNDED_UPDATES: shown without a budget)
 
 
 @dataclass

@@ -155,8 +155,9 @@ def run_inprocess(cfg: TrainConfig, *, progress: bool = True, method=None, envs=
         log.info("interrupted: stopping services")
     finally:
         group.join()
-        if progress:
-            live.close(board.line())
+        if progress:   # the learner's own final counters: its last heartbeat may still be in flight
+            live.close(board.line({"learner/0": {"role": "learner", "state": learner.state,
+                                                 **learner.status_fields()}}))
         bus.close()
         if server is not None:
             server.shutdown()

@@ -262,3 +262,30 @@ def test_human_blocks_contribute_no_actor_loss(name):
     m.update(batch, 0.5)
     for a, b in zip(tree0, m.groups[0]):
         torch.testing.assert_close(a, b.detach(), rtol=0, atol=0)
+
+
+class SaturatedHuman(BanditTask):
+    """The human plays the box faces: its measured action is exactly +-1 (the scripted
+    human's clipped command reaches them), outside the proposal's open support."""
+
+    def target(self, obs):
+        return np.where(super().target(obs) >= 0, 1.0, -1.0)
+
+
+@pytest.mark.parametrize("name", ALL_METHODS)
+def test_human_block_on_the_box_face_updates_every_method(name):
+    """Regression (`sage train --human-slot 1` raised "a_prop must be finite with |a| < 1"
+    in the learner): a human block at |a| = 1 has no density and must not reach the
+    log-prob; the robot carriers' ratios stay exact (on-policy: log-ratio 0 at the start)."""
+    m = make_method(name, AlgoConfig(epochs=1, minibatches=2, critic_hidden=32, encoder_latent=8), OBS, 3 * OBS)
+    batch = collect(m, SaturatedHuman(obs_dim=OBS, seed=1, n_rows=10, row_frac=0.5, human_rate=0.5), 6, 8, 0.5,
+                    np.random.default_rng(1))
+    fixed = batch["fixed_mask"]
+    assert fixed.any() and np.all(np.abs(batch["a_prop"][fixed]) == 1.0)
+    assert np.all(np.abs(batch["a_prop"][~fixed]) < 1.0)
+    before = flat_params(m)
+    diag = m.update(batch, progress=0.5)
+    assert diag["logratio_at_start"] < 1e-5
+    assert all(np.isfinite(v) for v in diag.values() if np.isscalar(v))
+    assert not torch.equal(before, flat_params(m))
+    assert torch.isfinite(flat_params(m)).all()

@@ -11,6 +11,7 @@ import json
 import os
 import signal
 import subprocess
+import time
 from pathlib import Path
 
 import pytest
@@ -18,16 +19,37 @@ import torch
 
 from test_supervisor import PY, ROOT, _member, _status, events, wait_for
 
+from common import keys, wire
+from common.transport import Bus
 from services.config import TrainConfig
 
 pytestmark = pytest.mark.slow
 
 
-def _config(run: Path, **kw) -> Path:
+BUDGET = 60            # updates of the chaos run
+UNBOUNDED = 10**9      # the kill run's budget: the test itself ends it, after the last kill
+
+
+def _config(run: Path, updates: int = BUDGET, **kw) -> Path:
     cfg = TrainConfig(run_id=run.name, run_dir=str(run), method="happo_cbf", actors=2, envs_per_actor=2,
-                      chunk_len=8, updates=60, status_period_s=0.25, eval_episodes=0, checkpoint_every=2,
+                      chunk_len=8, updates=updates, status_period_s=0.25, eval_episodes=0, checkpoint_every=2,
                       deploy_probe_every=0, algo={"epochs": 1, "minibatches": 1, "critic_hidden": 32}, **kw)
     return cfg.resolve().save(run / "config.json")
+
+
+def _stop_learner(run: Path) -> None:
+    """The ``control`` stop the supervisor sends when a budget is reached, sent to
+    the learner by the test: it checkpoints and exits 0, which ends the run."""
+    cfg = TrainConfig.load(run / "supervised_config.json")
+    bus = Bus.open(connect=cfg.transport.connect, mode="client")
+    try:
+        msg = wire.encode("control", {"command": "stop", "target": "learner"}, run_id=cfg.run_id,
+                          sender="supervisor/0", seq=0)
+        for _ in range(3):   # a sample published before the subscription is matched is lost: repeat
+            bus.publish(keys.control(cfg.run_id), msg)
+            time.sleep(0.5)
+    finally:
+        bus.close()
 
 
 @contextlib.contextmanager
@@ -56,10 +78,13 @@ def _final_checkpoint(run: Path) -> dict:
     return torch.load(path, map_location="cpu", weights_only=True)
 
 
-def _check_run(run: Path, proc: subprocess.Popen, out: str) -> dict:
+def _check_run(run: Path, proc: subprocess.Popen, out: str, updates: int | None = BUDGET) -> dict:
+    """The run ended with exit 0 after ``updates`` updates (None: wherever the test
+    stopped it, as long as every update up to its final checkpoint has its row)."""
     assert proc.returncode == 0, out[-4000:]
     rows = _metrics(run)
-    assert rows[-1]["update"] == 60 and [r["update"] for r in rows] == list(range(1, 61))
+    n = updates if updates is not None else int(_final_checkpoint(run)["updates"])
+    assert rows[-1]["update"] == n and [r["update"] for r in rows] == list(range(1, n + 1))
     versions = [r["version"] for r in rows]
     assert versions == sorted(set(versions)), "a version was published twice"
     assert sum(r.get("unfiltered_steps", 0) for r in rows) == 0            # the learner's audit
@@ -70,9 +95,12 @@ def _check_run(run: Path, proc: subprocess.Popen, out: str) -> dict:
 
 
 def test_kill_9_of_each_service_in_turn(tmp_path):
+    # An unbounded budget, ended by the test once every kill was followed by a restart
+    # and by progress: a fixed budget could run out right after a kill (the restart and
+    # progress the test waits for then never come), however the kills are timed.
     run = tmp_path / "faults"
     killed = []
-    with _sage_up("--config", str(_config(run))) as proc:
+    with _sage_up("--config", str(_config(run, updates=UNBOUNDED))) as proc:
         for victim in ("actor-1", "shield", "learner", "router"):
             v0 = wait_for(lambda: _version(run) >= 2 and _version(run), 120, f"training before killing {victim}")
             pid = _status(run)["services"][victim]["pid"]
@@ -81,8 +109,12 @@ def test_kill_9_of_each_service_in_turn(tmp_path):
             wait_for(lambda: any(e["pid"] != pid for e in events(run, "start", victim)), 60, f"{victim} restarted")
             # training goes on after the restart (the learner resumes above its old versions)
             wait_for(lambda: _version(run) > v0 + 1, 120, f"progress after killing {victim}", 0.2)
+        assert proc.poll() is None, "the run ended before the test stopped it"
+        _stop_learner(run)
         out, _ = proc.communicate(timeout=300)
-    ck = _check_run(run, proc, out)
+    ck = _check_run(run, proc, out, updates=None)
+    assert ck["updates"] >= 8   # two versions before each kill, and progress after it
+    assert any(e.get("message") == "learner finished" for e in events(run, "supervisor_exit")), out[-2000:]
     for victim, pid in killed:
         (crash,) = [e for e in events(run, "exit", victim) if e["pid"] == pid]
         assert crash["code"] == -signal.SIGKILL

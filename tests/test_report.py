@@ -99,3 +99,93 @@ def test_headline_comparisons_are_computed_from_the_overall_rows(tmp_path):
     # a zero reference gives no percentage rather than a division by zero
     paths[0] = res("happo", 0.0, 0.5, 1.0, 10.0)
     assert summarize(load_results(paths))["headline"]["shield"]["col_per_1k"]["reduction_pct"] is None
+
+
+def _figures(monkeypatch, paths, out):
+    """write_report's figures, kept open: {file name: matplotlib Figure}."""
+    import matplotlib.pyplot as plt
+
+    figs = {}
+    real_close = plt.close
+    real_savefig = plt.Figure.savefig
+
+    def savefig(fig, path, *a, **kw):
+        figs[str(path).split("/")[-1]] = fig
+        return real_savefig(fig, path, *a, **kw)
+
+    monkeypatch.setattr(plt.Figure, "savefig", savefig)
+    monkeypatch.setattr(plt, "close", lambda fig=None: None)
+    write_report(paths, out)
+    monkeypatch.setattr(plt, "close", real_close)
+    return figs
+
+
+def _finite_points(ax) -> int:
+    import numpy as np
+
+    return sum(int(np.isfinite(np.asarray(line.get_ydata(), dtype=float)).sum()) for line in ax.get_lines())
+
+
+def test_mechanism_note_is_a_whole_sentence(tmp_path):
+    """Regression: the note ended "...with a barrier of the."."""
+    path = _result(tmp_path, "sage", "maze", 0, 0.5, 1.0)
+    data = json.loads(path.read_text())
+    for p in data["train_curve"]:
+        p.update(w_gap_first=0.5, proposal_violation_rate=0.1)
+    path.write_text(json.dumps(data))
+    md = table_markdown(summarize(load_results([path])))
+    note = md.split("### Mechanism diagnostics")[1].split("\n\n")[1]
+    assert "barrier of the." not in note
+    assert note.endswith("with a barrier of the shield's own specification (a carrier disc or payload point "
+                         "within its safety margin of a wall) below 0."), note
+
+
+def test_deployment_probe_panel_shows_runs_too_short_for_a_curve(tmp_path, monkeypatch):
+    """Regression: with one probe per run the panel was an empty plot; runs with
+    several probes still draw their mean curve."""
+    short = []
+    for m, sr in (("happo", 0.25), ("sage", 0.75)):
+        path = _result(tmp_path, m, "maze", 0, sr, 1.0)
+        data = json.loads(path.read_text())
+        for p in data["train_curve"]:
+            if p["progress"] < 1.0:
+                p.pop("deploy_sr", None)   # one probe, at the end
+        path.write_text(json.dumps(data))
+        short.append(path)
+    figs = _figures(monkeypatch, short, tmp_path / "short")
+    probe = figs["reward_drop.png"].axes[2]
+    assert "deployment SR" in probe.get_title() and probe.get_ylabel()
+    assert _finite_points(probe) == 2          # one point per method
+    (tmp_path / "l").mkdir()
+    longer = [_result(tmp_path / "l", m, "maze", 0, 0.5, 1.0) for m in ("happo", "sage")]
+    probe = _figures(monkeypatch, longer, tmp_path / "long")["reward_drop.png"].axes[2]
+    assert _finite_points(probe) >= 2 * 41     # each method's mean curve on the progress grid
+
+
+def test_payload_panels_have_units_and_a_legend(tmp_path, monkeypatch):
+    paths = [_result(tmp_path, m, "maze", 0, 0.5, 1.0) for m in ("happo", "happo_cbf", "sage")]
+    fig = _figures(monkeypatch, paths, tmp_path / "r")["payload_panels.png"]
+    labels = [ax.get_ylabel() for ax in fig.axes]
+    for unit, label in zip(("(deg)", "(rad)", "(m)", "(s)"), labels):
+        assert label.endswith(unit), labels
+    (legend,) = fig.legends
+    assert [t.get_text() for t in legend.get_texts()] == ["HAPPO", "HAPPO+CBF", "SAGE+CBF"]
+    for ax in fig.axes:   # the bars themselves: finite, one per method
+        assert len(ax.patches) == 3
+
+
+def test_scenario_render_has_axis_units_and_a_legend(tmp_path, monkeypatch):
+    import matplotlib.pyplot as plt
+
+    from common.env import render
+
+    figs = []
+    monkeypatch.setattr(plt, "close", lambda fig=None: figs.append(fig))
+    records = render.render(str(tmp_path / "g.png"), ["narrow_gate"])
+    assert records["narrow_gate"]["success"] and (tmp_path / "g.png").stat().st_size > 1000
+    (fig,) = figs
+    ax = fig.axes[0]
+    assert ax.get_xlabel() == "x (m)" and ax.get_ylabel() == "y (m)"
+    (legend,) = fig.legends
+    texts = [t.get_text() for t in legend.get_texts()]
+    assert {"wall", "reference route", "carriers", "payload centre"} <= set(texts), texts

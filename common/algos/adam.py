@@ -5,9 +5,10 @@ decay, no AMSGrad, not capturable); tests/test_adam.py checks it against
 that class bit for bit, and its ``state_dict`` has the same layout, so
 checkpoints move between the two. It is written here rather than imported
 because constructing any ``torch.optim`` optimizer imports ``torch._dynamo``
-(and sympy with it): 2-4 s at every learner start on this 2-core machine,
-on the critical path of the in-process main job, where the actor waits for
-the first parameters while the learner builds its optimizers. The update
+(and sympy with it) at every learner start, on the critical path of the
+in-process main job, where the actor waits for the first parameters while
+the learner builds its optimizers (the figures, before and after, are in
+docs/scaling.md, "The learner starts in ..."). The update
 runs as one multi-tensor (``torch._foreach_*``) op per line over all the
 parameters, which also costs less than ``torch.optim.Adam(fused=True)`` at
 these tensor sizes.

@@ -104,6 +104,13 @@ class Minibatch:
     # first minibatch, or a caller outside ``update``), so the reference is the forward itself
     logp_start: Tensor | None = None
 
+    @property
+    def a_robot(self) -> Tensor:
+        """a_prop with human blocks at 0. A human block holds the human's measured action,
+        which may sit on the box face (|a| = 1, outside the proposal's support): it has no
+        density and no ratio, so it is never passed to the density as an action."""
+        return torch.where(self.fixed, torch.zeros_like(self.a_prop), self.a_prop)
+
     def index(self, idx: Tensor) -> "Minibatch":
         """The rows ``idx`` (a 1-D index tensor) of every field; index_select is
         the same gather as ``v[idx]`` at a third of its cost for the row blocks."""
@@ -254,7 +261,7 @@ class Method:
         with torch.no_grad():
             a_st = self._tree_actions(data, tau, grad=False)
             center = self._center(data, a_st, kappa, step=self._sail_step(data, a_st, kappa))
-            return proposal_log_prob(center, self._log_std(), data.a_prop).detach()
+            return proposal_log_prob(center, self._log_std(), data.a_robot).detach()
 
     @staticmethod
     def _logratio_at_start(data: Minibatch) -> float:
@@ -447,8 +454,8 @@ class Method:
 
     def _log_ratio(self, mb: Minibatch, center: Tensor, log_std: Tensor) -> Tensor:
         """Per-carrier log-likelihood ratio against the behaviour policy at the stored
-        a_prop [B, N]; 0 on human blocks."""
-        return self._ratio_against(mb, proposal_log_prob(center, log_std, mb.a_prop), mb.logp_old)
+        a_prop [B, N]; 0 on human blocks (``_ratio_against``)."""
+        return self._ratio_against(mb, proposal_log_prob(center, log_std, mb.a_robot), mb.logp_old)
 
     @staticmethod
     def _ratio_against(mb: Minibatch, logp: Tensor, reference: Tensor) -> Tensor:
@@ -490,7 +497,7 @@ class Method:
         computed on one serves the other. Returns (a_ST, SAIL step or None, behaviour, start)."""
         a_st = self._tree_actions(mb, tau, grad=True)
         step = self._sail_step(mb, a_st, kappa)
-        logp = proposal_log_prob(self._center(mb, a_st, kappa, step=step), self._log_std(), mb.a_prop)
+        logp = proposal_log_prob(self._center(mb, a_st, kappa, step=step), self._log_std(), mb.a_robot)
         behaviour = self._surrogates_against(mb, logp, mb.logp_old)
         reference = logp.detach() if mb.logp_start is None else mb.logp_start
         start_ratio = self._ratio_against(mb, logp, reference)

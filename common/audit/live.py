@@ -17,8 +17,11 @@ class LiveOccupancy:
     last ``window`` traces (what the policy does now, not since the start);
     counts of traces and env steps seen are totals."""
 
-    def __init__(self, window: int = 200, corrected_tol: float = VIOLATION_TOL):
+    MAX_DEPTH = 12   # without a run's depth: deeper paths are refused (2^D leaf columns)
+
+    def __init__(self, window: int = 200, corrected_tol: float = VIOLATION_TOL, depth: int | None = None):
         self.window = window
+        self.depth = depth                   # the run's tree depth: every trace's path must have it
         self.corrected_tol = corrected_tol   # ||a_exec - a_prop|| above this = the QP changed the action
         self._recent: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=window)   # (leaf [K,N], corr [K])
         self.traces = 0
@@ -26,12 +29,23 @@ class LiveOccupancy:
         self.n_leaves = 0
 
     def add(self, body: dict) -> None:
+        """Add one decoded trace body; a ``ValueError`` (nothing added) when it cannot come
+        from trees of this depth: another path length, a leaf outside [0, 2^D), a
+        correction norm that is negative or not finite."""
         leaf = np.asarray(body["leaf"], dtype=np.int64)
-        self._recent.append((leaf, np.asarray(body["correction_norm"], dtype=np.float64)))
+        corr = np.asarray(body["correction_norm"], dtype=np.float64)
+        # a depth-D tree has 2^D leaves; the path length D is the nodes' last axis
+        depth = int(np.asarray(body["nodes"]).shape[-1])
+        if (self.depth is not None and depth != self.depth) or not 1 <= depth <= self.MAX_DEPTH:
+            raise ValueError(f"trace: path length {depth}, the run's trees have depth {self.depth}")
+        if leaf.size and (leaf.min() < 0 or leaf.max() >= 2 ** depth):
+            raise ValueError(f"trace: leaf {int(leaf.max())} outside 0..{2 ** depth - 1}")
+        if not (np.isfinite(corr).all() and (corr >= 0).all()):
+            raise ValueError("trace: correction norms must be finite and >= 0")
+        self._recent.append((leaf, corr))
         self.traces += 1
         self.versions[int(body["actor_id"])] = int(body["version"])
-        # a depth-D tree has 2^D leaves; the path length D is the nodes' last axis
-        self.n_leaves = max(self.n_leaves, 2 ** int(np.asarray(body["nodes"]).shape[-1]))
+        self.n_leaves = max(self.n_leaves, 2 ** depth)
 
     def occupancy(self) -> np.ndarray:
         """[N carriers, n_leaves] fraction of recent decisions in each leaf."""

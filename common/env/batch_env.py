@@ -66,18 +66,13 @@ class BatchEnv:
         self.max_steps = cfg.episode_steps
         self.safety_cfg = safety_config(cfg)
         self._safety_model = safety.SafetyModel(self.scene.walls, self.safety_cfg, num_envs)
-        seeds = np.random.SeedSequence(seed).spawn(num_envs)
-        # env k's start/goal/mass (and scripted human) draws; its observation noise has its own
-        # stream (a child of the same seed), so noise settings never move the starts
-        self.rngs = [np.random.default_rng(s) for s in seeds]
-        self.noise_rngs = [np.random.default_rng(s.spawn(1)[0]) for s in seeds]
         K = num_envs
         noise = observation_noise_std(cfg)
         self._obs_noise_std = noise.astype(np.float32) if cfg.randomize and noise.any() else None
         # each env's next NOISE_BLOCK noise draws, drawn in one call of its RNG (the same stream
         # as one call per step); _noise_used counts the draws taken from the block
         self._noise_block = np.empty((K, self.NOISE_BLOCK, N_CARRIERS, OBS_DIM), np.float32)
-        self._noise_used = np.full(K, self.NOISE_BLOCK)
+        self.reseed(seed)
         self.payload_mass = np.full(K, PAYLOAD_MASS)
         d = cfg.action_delay_steps
         self._act_queue = np.zeros((K, d, JOINT_ACT_DIM)) if d else None   # sent, not yet executed
@@ -106,6 +101,19 @@ class BatchEnv:
         self.snap = Snapshot.empty(K)   # the current state's snapshot, updated in place
         self._all = np.arange(K)
         self._started = False
+
+    def reseed(self, seed: int) -> None:
+        """Restart every env's random streams from ``seed``: the next ``reset`` draws the
+        episodes a fresh ``BatchEnv(cfg, K, seed)`` would (the compiled model is kept)."""
+        seeds = np.random.SeedSequence(seed).spawn(self.K)
+        # env k's start/goal/mass (and scripted human) draws; its observation noise has its own
+        # stream (a child of the same seed), so noise settings never move the starts
+        self.rngs = [np.random.default_rng(s) for s in seeds]
+        self.noise_rngs = [np.random.default_rng(s.spawn(1)[0]) for s in seeds]
+        self._noise_used = np.full(self.K, self.NOISE_BLOCK)
+        # the layout stream is keyed by (seed, purpose, env, episode): it restarts with the seed
+        self.seed = seed
+        self.layout_episode[:] = 0
 
     # --- episode start -------------------------------------------------------------
     START_TRIES = 100   # redraws of a start closer than start_min_clearance to a wall

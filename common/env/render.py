@@ -60,25 +60,29 @@ def draw_scenario(ax, name: str, seed: int = 0, every: int = 12, layouts: int = 
     spec = SCENARIOS[name]
     poses, rec, layout = scripted_rollout(name, seed)
     others = drawn_layouts(name, layouts, seed)[1:] if layouts > 1 else []
-    for lay in others:
-        for w in lay.walls:
-            _box(ax, *w, facecolor="none", edgecolor="tab:red", lw=0.5, alpha=0.45)
-    for w in layout.walls:
-        _box(ax, *w, facecolor="0.35", edgecolor="0.2", lw=0.5, alpha=0.85)
+    for j, lay in enumerate(others):
+        for k, w in enumerate(lay.walls):
+            _box(ax, *w, facecolor="none", edgecolor="tab:red", lw=0.5, alpha=0.45,
+                 label="walls of other drawn layouts" if j == 0 and k == 0 else None)
+    for j, w in enumerate(layout.walls):
+        _box(ax, *w, facecolor="0.35", edgecolor="0.2", lw=0.5, alpha=0.85, label="wall" if j == 0 else None)
     for lay in others:
         ax.plot(lay.route[:, 0], lay.route[:, 1], ":", color="tab:green", lw=0.5, alpha=0.6)
     route = Route(layout.route)
-    ax.plot(route.points[:, 0], route.points[:, 1], "--", color="tab:green", lw=1.0, label="route")
+    ax.plot(route.points[:, 0], route.points[:, 1], "--", color="tab:green", lw=1.0, label="reference route")
     sel = list(range(0, len(poses), every)) + [len(poses) - 1]
     cmap = __import__("matplotlib").colormaps["viridis"]
     for j, t in enumerate(sel):
         pxy, yaw, cxy = poses[t]
         col = cmap(j / max(len(sel) - 1, 1))
-        _box(ax, pxy[0], pxy[1], PAYLOAD_HALF[0], PAYLOAD_HALF[1], yaw, facecolor=col, alpha=0.35, edgecolor=col)
+        first = j == 0
+        _box(ax, pxy[0], pxy[1], PAYLOAD_HALF[0], PAYLOAD_HALF[1], yaw, facecolor=col, alpha=0.35, edgecolor=col,
+             label=f"payload every {every} steps (dark → light)" if first else None)
         for i in range(len(GRASP_LOCAL)):
-            ax.add_patch(Circle(cxy[i], CARRIER_RADIUS, facecolor="none", edgecolor=col, lw=0.6))
+            ax.add_patch(Circle(cxy[i], CARRIER_RADIUS, facecolor="none", edgecolor=col, lw=0.6,
+                                label="carriers" if first and i == 0 else None))
     track = np.array([p[0] for p in poses])
-    ax.plot(track[:, 0], track[:, 1], color="tab:orange", lw=1.0)
+    ax.plot(track[:, 0], track[:, 1], color="tab:orange", lw=1.0, label="payload centre")
     corners = _corners(np.concatenate([layout.walls] + [lay.walls for lay in others]))
     lo, hi = corners.min(axis=0) - 0.1, corners.max(axis=0) + 0.1
     ax.set_xlim(lo[0], hi[0])
@@ -87,6 +91,8 @@ def draw_scenario(ax, name: str, seed: int = 0, every: int = 12, layouts: int = 
     spread = f", {1 + len(others)} layouts" if others else ""
     ax.set_title(f"{spec.title} ({spec.family}{spread})" + ("" if rec["success"] else " [scripted run failed]"),
                  fontsize=9)
+    ax.set_xlabel("x (m)", fontsize=7)
+    ax.set_ylabel("y (m)", fontsize=7)
     ax.tick_params(labelsize=6)
     return rec
 
@@ -106,7 +112,10 @@ def render(out: str, names: list[str], seed: int = 0, layouts: int = 6):
         records[name] = draw_scenario(ax, name, seed, layouts=layouts)
     for ax in list(axes.flat)[n:]:
         ax.axis("off")
-    fig.tight_layout()
+    # one legend for the figure (every panel draws the same kinds of things)
+    fig.legend(*axes.flat[0].get_legend_handles_labels(), loc="upper center", ncol=3 if n > 1 else 2,
+               fontsize=7 if n > 1 else 6)
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.5 / (3.4 * rows)))
     fig.savefig(out, dpi=130)
     plt.close(fig)
     return records

@@ -16,7 +16,6 @@ import io
 import json
 import queue
 import secrets
-import socket
 import time
 from collections import deque
 from pathlib import Path
@@ -34,66 +33,19 @@ from common.safety_rows import SafetyRows
 from common.wire import traj_batch
 from services.base import RateMeter, Service
 from services.config import DEPLOY_PROBE_SEED
+from services.learner.tracking import EventFile, tensorboard_available, x_of  # noqa: F401 - tensorboard_available: sage.train
 
 
 CHUNK_OUTCOMES = ("used", "stale", "incarnation", "shape", "future", "actor_id", "overflow", "queue_full",
                   "lost", "actor_restarts")
 
 
-def tensorboard_available() -> bool:
-    """Whether tensorboardX (the optional ``tensorboard`` extra) can be imported."""
-    try:
-        import tensorboardX  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
-class EventFile:
-    """One TensorBoard event file in ``logdir``, written synchronously through
-    tensorboardX's TFRecord writer (no background thread: ``scalars`` is on disk
-    when it returns). TensorBoard reads every event file of a directory, so a
-    resumed learner opens a new file beside the old ones; ``purge_step`` writes
-    the session-start marker that makes TensorBoard drop the earlier files'
-    events at steps >= it (the updates the restart rolled back)."""
-
-    def __init__(self, logdir: str | Path, suffix: str = "", purge_step: int | None = None):
-        from tensorboardX.proto.event_pb2 import Event, SessionLog
-        from tensorboardX.proto.summary_pb2 import Summary
-        from tensorboardX.record_writer import RecordWriter
-
-        self._Event, self._Summary = Event, Summary
-        logdir = Path(logdir)
-        logdir.mkdir(parents=True, exist_ok=True)
-        self.path = logdir / (f"events.out.tfevents.{int(time.time()):010d}.{socket.gethostname()}"
-                              + (f".{suffix}" if suffix else ""))
-        self._writer = RecordWriter(str(self.path))
-        self._write(Event(wall_time=time.time(), file_version="brain.Event:2"))
-        if purge_step is not None:
-            self._write(Event(wall_time=time.time(), step=int(purge_step),
-                              session_log=SessionLog(status=SessionLog.START)))
-        self._writer.flush()
-
-    def _write(self, event) -> None:
-        self._writer.write(event.SerializeToString())
-
-    def scalars(self, step: int, values: dict[str, float]) -> None:
-        """One event at ``step`` holding a scalar per entry, flushed."""
-        summary = self._Summary(value=[self._Summary.Value(tag=k, simple_value=float(v)) for k, v in values.items()])
-        self._write(self._Event(wall_time=time.time(), step=int(step), summary=summary))
-        self._writer.flush()
-
-    def close(self) -> None:
-        if self._writer is not None:
-            self._writer.close()
-            self._writer = None
-
-
 class MetricsLog:
     """Per-update rows to ``metrics.jsonl`` and ``metrics.csv`` (CSV is
     rewritten atomically when a new column appears, so every row has every column)
     and, with ``tensorboard`` and tensorboardX importable, as TensorBoard scalars
-    under ``tb/`` (one per numeric key, step = the row's update).
+    under ``tb/`` (``services.learner.tracking``: one per numeric key, tagged by
+    section, at the row's env steps; ``config`` as text and HParams).
 
     On resume from a checkpoint taken after update ``upto``, rows of later
     updates (work the restart rolled back) move to ``metrics_discarded.jsonl``,
@@ -102,7 +54,7 @@ class MetricsLog:
     same ``tb/`` directory, with the rolled-back steps purged for TensorBoard."""
 
     def __init__(self, run_dir: str | Path, upto: int | None = None, marker: dict | None = None,
-                 tensorboard: bool = False, events_suffix: str = ""):
+                 tensorboard: bool = False, events_suffix: str = "", config: dict | None = None):
         run = RunDir(run_dir)
         run.root.mkdir(parents=True, exist_ok=True)
         self.jsonl, self.csv = run.metrics_jsonl, run.metrics_csv
@@ -123,7 +75,9 @@ class MetricsLog:
             self._rewrite_csv()
         self.events: EventFile | None = None
         if tensorboard and tensorboard_available():
-            self.events = EventFile(run.tensorboard, events_suffix, None if upto is None else upto + 1)
+            # purge from the first env step after the kept rows (the rolled-back updates' steps)
+            purge = None if upto is None else (x_of(self.rows[-1]) + 1 if self.rows else 0)
+            self.events = EventFile(run.tensorboard, events_suffix, purge, config)
 
     def _rewrite_csv(self) -> None:
         buf = io.StringIO()
@@ -145,8 +99,7 @@ class MetricsLog:
             with open(self.csv, "a", newline="") as f:
                 csv.DictWriter(f, fieldnames=self.columns).writerow(row)
         if self.events is not None and "update" in row:
-            self.events.scalars(int(row["update"]), {
-                k: v for k, v in row.items() if isinstance(v, (int, float)) and not isinstance(v, bool)})
+            self.events.row(row)
 
     def close(self) -> None:
         if self.events is not None:
@@ -217,6 +170,7 @@ class LearnerService(Service):
         extra["unfiltered_steps"] = float(self.unfiltered_steps)
         extra["queue_depth"] = float(self.chunks.qsize())
         extra["update_s_total"] = self.update_s_total
+        extra["budget_updates"], extra["progress"] = float(self.cfg.updates), self.progress()   # live line n/N, ETA
         if self.last_deploy_sr is not None and np.isfinite(self.last_deploy_sr):
             extra["deploy_sr"] = float(self.last_deploy_sr)
         return {"version": self.version, "env_steps": self.env_steps, "updates": self.updates,
@@ -481,7 +435,8 @@ class LearnerService(Service):
         resumed = self.try_resume()
         self.log_rows = MetricsLog(self.run_dir, upto=self.updates if resumed else 0,
                                    marker={"rolled_back_by": self.incarnation, "resumed_from": self.resumed_from},
-                                   tensorboard=self.cfg.tensorboard, events_suffix=self.incarnation)
+                                   tensorboard=self.cfg.tensorboard, events_suffix=self.incarnation,
+                                   config=json.loads(self.cfg.to_json()))
         if self.log_rows.rolled_back:
             self.log.warning("moved %d metrics rows past the checkpoint to %s", self.log_rows.rolled_back,
                              self.paths.metrics_discarded.name)
