@@ -87,7 +87,7 @@ def test_sage_up_writes_summary_and_final_evaluation_like_sage_train(tmp_path):
     summary = json.loads((run / "summary.json").read_text())
     assert summary["mode"] == "supervised" and summary["updates"] == 2 and summary["version"] >= 2
     assert summary["eval"]["episodes_finished"] == 1 and summary["eval"]["shielded"] is True
-    assert "eval (1 episodes, shielded)" in proc.stderr
+    assert "eval (1 episodes on 1 checkpoint(s), shielded)" in proc.stderr
 
 
 def _option(command: str, flag: str):
