@@ -92,10 +92,14 @@ RAW = ("raw proposal", lambda b: (b["a_prop"], np.zeros(len(b["a_prop"]), np.int
 MAX_ITER = ("status 2", lambda b: (fake_solve(b["a_prop"], SafetyRows.of(b)).a_exec, np.full(len(b["a_prop"]), 2)))
 CLAIMS_INFEASIBLE = ("raw, claimed infeasible",
                      lambda b: (np.clip(b["a_prop"], -1, 1), np.ones(len(b["a_prop"]), np.int32)))
+# a plausible forgery: every row met, in the box, status optimal, but not the projection
+# (the fake env's one row is a_0 >= 0.5: "all zeros" moved onto it)
+SAFE_NOT_QP = ("safe point, claimed optimal",
+               lambda b: (np.eye(len(b["a_prop"][0]))[[0] * len(b["a_prop"])] * 0.5, np.zeros(len(b["a_prop"]), np.int32)))
 
 
 @PIPELINED
-@pytest.mark.parametrize("forger", [RAW, MAX_ITER, CLAIMS_INFEASIBLE], ids=lambda f: f[0])
+@pytest.mark.parametrize("forger", [RAW, MAX_ITER, CLAIMS_INFEASIBLE, SAFE_NOT_QP], ids=lambda f: f[0])
 def test_forged_shield_alone_gets_nothing_executed(tmp_path, bus, forger, pipelined):
     cfg = make_cfg(tmp_path, actor=ActorConfig(shield_timeout_s=0.1, unhealthy_after_s=30))
     stop = threading.Event()
@@ -110,7 +114,7 @@ def test_forged_shield_alone_gets_nothing_executed(tmp_path, bus, forger, pipeli
     assert _executed(env) == []                    # fail closed: nothing ran
     refused = sum(actor.answers_refused.values())
     metric = sum(sample(reg, "sage_actor_shield_answers_rejected_total", role="actor", actor_id="0", reason=r)
-                 for r in ("rows", "status", "infeasible_claim"))
+                 for r in ("rows", "status", "infeasible_claim", "kkt"))
     assert metric == refused >= 5
 
 
