@@ -371,7 +371,7 @@ def _check_depth(env) -> None:
                 stack.append((x, depth + 1))
 
 
-def _dec_array(name: str, v) -> np.ndarray:
+def _dec_array(name: str, v, spec_shape: tuple = (), bounds: dict[str, int] | None = None) -> np.ndarray:
     if not isinstance(v, dict) or set(v) != {"nd", "shape", "data"}:
         raise WireError("type", f"{name}: expected an array map")
     nd = v["nd"]
@@ -392,6 +392,10 @@ def _dec_array(name: str, v) -> np.ndarray:
         elements *= max(s, 1)
     if elements > MAX_ARRAY_ELEMENTS:
         raise WireError("limit", f"{name}: shape {shape} has more than {MAX_ARRAY_ELEMENTS} elements")
+    if bounds:   # the run's caps on shape symbols, before the copy below
+        for want, got in zip(spec_shape, shape):
+            if isinstance(want, str) and want in bounds and got > bounds[want]:
+                raise WireError("limit", f"{name}: {want}={got} > {bounds[want]}, this run's bound")
     data = v["data"]
     if not isinstance(data, bytes):
         raise WireError("type", f"{name}: data is not bytes")
@@ -467,7 +471,7 @@ def _check_float_map(name: str, v) -> dict:
     return out
 
 
-def _validate_body(kind: str, body) -> dict:
+def _validate_body(kind: str, body, bounds: dict[str, int] | None = None) -> dict:
     if not isinstance(body, dict):
         raise WireError("envelope", "body is not a map")
     schema = SCHEMAS[kind]
@@ -503,7 +507,7 @@ def _validate_body(kind: str, body) -> dict:
                 arrs[k] = a
             out[name] = arrs
         elif isinstance(spec, Arr):
-            a = _dec_array(name, v)
+            a = _dec_array(name, v, spec.shape, bounds)
             cat = _CATEGORY[_WIRE_NAME[a.dtype]]
             if cat != spec.category:
                 raise WireError("dtype", f"{name}: {cat} array where {spec.category} expected")
@@ -525,12 +529,15 @@ def _validate_body(kind: str, body) -> dict:
     return out
 
 
-def decode(payload: bytes, *, run_id: str, expect: str | tuple[str, ...] | None = None) -> Message:
+def decode(payload: bytes, *, run_id: str, expect: str | tuple[str, ...] | None = None,
+           bounds: dict[str, int] | None = None) -> Message:
     """Parse and validate one message; raise ``WireError`` on anything wrong
     (and nothing else, whatever the bytes).
 
     ``run_id`` must match the envelope (runs never cross-talk even if keys are
-    misrouted); ``expect`` restricts the accepted kind(s).
+    misrouted); ``expect`` restricts the accepted kind(s). ``bounds``: the
+    largest size a shape symbol may take in this run (e.g. a shield request's
+    ``B`` and ``M`` from the run's spec); a larger one is a ``limit``.
     """
     if not isinstance(payload, (bytes, bytearray, memoryview)):
         raise WireError("malformed", "payload is not bytes")
@@ -567,7 +574,7 @@ def decode(payload: bytes, *, run_id: str, expect: str | tuple[str, ...] | None 
         raise WireError("kind", f"unknown kind {_brief(kind)}")
     if expect is not None and kind not in ((expect,) if isinstance(expect, str) else expect):
         raise WireError("kind", f"got {kind!r}, expected {expect!r}")
-    body = _validate_body(kind, env["body"])
+    body = _validate_body(kind, env["body"], bounds)
     return Message(kind=kind, run_id=env["run"], sender=env["sender"], seq=env["seq"],
                    t=float(env["t"]), body=body)
 

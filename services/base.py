@@ -50,11 +50,12 @@ class Service:
     def send(self, key: str, kind: str, body: dict) -> None:
         self.bus.publish(key, self.encode(kind, body))
 
-    def decode(self, payload: bytes, expect) -> wire.Message | None:
-        """Decode or count-and-log the rejection; never raises."""
+    def decode(self, payload: bytes, expect, bounds: dict[str, int] | None = None) -> wire.Message | None:
+        """Decode or count-and-log the rejection; never raises. ``bounds``:
+        ``wire.decode``'s per-run caps on shape symbols."""
         unexpected = None
         try:
-            msg = wire.decode(payload, run_id=self.cfg.run_id, expect=expect)
+            msg = wire.decode(payload, run_id=self.cfg.run_id, expect=expect, bounds=bounds)
         except wire.WireError as exc:
             reason, detail = exc.reason, exc.detail
         except Exception as exc:  # noqa: BLE001 - defence in depth: no message may kill the loop

@@ -65,6 +65,10 @@ class ShieldConfig:
     # Queries waiting for a batch, at most (one per actor per step is the normal load;
     # beyond this a flood is answered "overloaded" at once and counted, memory stays bounded)
     max_queue: int = 1024
+    # Decoded queries one sender may have waiting (a pipelined actor has 2 out per
+    # step); beyond it that sender's query is answered "overloaded" and counted, so
+    # one flooding sender cannot take the others' turns (service is round-robin)
+    max_pending_per_sender: int = 4
 
 
 @dataclass
@@ -259,8 +263,9 @@ class TrainConfig:
                 < self.ports.shield + self.shields:
             raise ValueError(f"shield shard metric ports {self.ports.shield}..{self.ports.shield + self.shields - 1} "
                              f"overlap the actors' from {self.ports.actor_base}")
-        if self.shield.max_queue < 1:
-            raise ValueError(f"shield.max_queue must be >= 1, got {self.shield.max_queue}")
+        if self.shield.max_queue < 1 or self.shield.max_pending_per_sender < 1:
+            raise ValueError(f"shield.max_queue and shield.max_pending_per_sender must be >= 1, got "
+                             f"{self.shield.max_queue}, {self.shield.max_pending_per_sender}")
         if self.shield.max_batch < 1 or self.shield.window_s < 0:
             raise ValueError("shield.max_batch >= 1 and shield.window_s >= 0")
         return self
