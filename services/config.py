@@ -82,6 +82,10 @@ class ActorConfig:
     # (common/shield/prune.py: exact, a dropped row can never be active or violated);
     # most wall rows are far from binding, and the rows are most of a query's bytes.
     prune_rows: bool = True
+    # Parameter fencing (services/actor/service.py _fence): a params message may be at
+    # most this many versions above the newest version the learner's heartbeats vouch
+    # for (one update = one version; heartbeats come every status_period_s)
+    max_version_step: int = 64
     unhealthy_after_s: float = 10.0    # no shield answer this long -> status "unhealthy"
     exit_on_unhealthy: bool = False    # supervised mode: exit(3) so the supervisor sees it
     params_wait_s: float = 60.0        # max wait for the first parameters before unhealthy
@@ -236,6 +240,8 @@ class TrainConfig:
             raise ValueError(f"actor.chaos_crash_prob must be in [0, 1), got {self.actor.chaos_crash_prob}")
         if self.actor.chaos_crash_prob > 0 and self.mode != "supervised":
             raise ValueError("actor.chaos_crash_prob needs --mode supervised (a crashed thread is not restarted)")
+        if self.actor.max_version_step < 1:
+            raise ValueError(f"actor.max_version_step must be >= 1, got {self.actor.max_version_step}")
         if not self.actor.verify_tol > 0 or self.learner_queue_chunks < 1:
             raise ValueError("actor.verify_tol must be > 0 and learner_queue_chunks >= 1")
         if self.actor.trace_every < 0:
