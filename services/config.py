@@ -141,6 +141,10 @@ class TrainConfig:
     updates: int = 100                 # budget in learner updates (~4 min on 2 cores: SAGE on narrow_gate learns to succeed) ...
     minutes: float | None = None       # ... or wall-clock minutes (whichever first)
     max_lag: int = 1                   # accept chunks from versions >= current - max_lag
+    # A chunk whose sequence number is more than this many ahead of its actor's
+    # last one is refused ("seq_jump") rather than counting the gap as lost: a
+    # learner down for minutes misses far fewer (actors pace on its parameters)
+    max_seq_gap: int = 4096
     learner_queue_chunks: int = 64     # bound of the learner's chunk queue and pending set (drops counted)
     seed: int = 0
     run_dir: str = ""                  # filled by resolve(): runs/<run_id>
@@ -261,6 +265,8 @@ class TrainConfig:
             raise ValueError("torch_threads must be >= 0 (0 = torch default)")
         if self.deploy_probe_every < 0 or self.deploy_probe_episodes < 1:
             raise ValueError("deploy_probe_every must be >= 0 and deploy_probe_episodes >= 1")
+        if self.max_seq_gap < 1:
+            raise ValueError(f"max_seq_gap must be >= 1, got {self.max_seq_gap}")
         if self.max_lag < 0 or self.chunks_per_update < 0:
             raise ValueError("max_lag and chunks_per_update must be >= 0")
         if self.shields > self.actors:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
 import queue
 import secrets
 import socket
@@ -37,7 +38,7 @@ from services.config import DEPLOY_PROBE_SEED
 
 
 CHUNK_OUTCOMES = ("used", "stale", "incarnation", "shape", "future", "actor_id", "overflow", "queue_full",
-                  "lost", "actor_restarts")
+                  "lost", "actor_restarts", "duplicate", "seq_jump")
 
 
 def tensorboard_available() -> bool:
@@ -196,6 +197,8 @@ class LearnerService(Service):
         # by a previous incarnation after its last checkpoint)
         self.counts = {k: 0 for k in CHUNK_OUTCOMES}
         self.last_seq: dict[str, int] = {}       # actor sender -> newest chunk seq seen
+        self.last_seq_t: dict[str, float] = {}   # actor sender -> that chunk's send time (header t)
+        self._recent: dict[str, deque[tuple[int, float]]] = {}   # (seq, t) of each actor's recent chunks
         self.unfiltered_steps = 0                # shielded steps whose a_exec broke a row (audit; must stay 0)
         self.paths = RunDir(cfg.run_dir)
         self._published_floor = -1
@@ -257,6 +260,7 @@ class LearnerService(Service):
             "env_steps": self.env_steps,
             "counts": dict(self.counts),
             "last_seq": dict(self.last_seq),
+            "last_seq_t": dict(self.last_seq_t),
             "unfiltered_steps": self.unfiltered_steps,
             "rng": {"torch": torch.get_rng_state(),
                     "numpy_mt19937": torch.from_numpy(np_state[1].astype(np.int64)),
@@ -292,6 +296,7 @@ class LearnerService(Service):
         self.env_steps = int(ck["env_steps"])
         self.counts.update({k: int(v) for k, v in ck["counts"].items() if k in self.counts})
         self.last_seq = {str(k): int(v) for k, v in ck.get("last_seq", {}).items()}
+        self.last_seq_t = {str(k): float(v) for k, v in ck.get("last_seq_t", {}).items()}
         self.unfiltered_steps = int(ck.get("unfiltered_steps", 0))
         self.log.info("resumed from checkpoint version %d (update %d)", self.resumed_from, self.updates)
         return True
@@ -350,7 +355,10 @@ class LearnerService(Service):
         if not 0 <= body["actor_id"] < self.cfg.actors or msg.sender != f"actor/{body['actor_id']}":
             self._drop("actor_id")   # not one of this run's actors: not part of any actor's sequence
             return
-        self._account_seq(msg.sender, msg.seq)
+        replay = self._account_seq(msg.sender, msg.seq, msg.t)
+        if replay:
+            self._drop(replay)   # a copy, or a jump no actor makes: trains nothing, moves no count
+            return
         versions = body["version_t"]
         if body["incarnation"] != self.incarnation:
             self._drop("incarnation")
@@ -365,17 +373,31 @@ class LearnerService(Service):
                 self.pending.popleft()   # the oldest would go stale first anyway
                 self._drop("overflow")
 
-    def _account_seq(self, sender: str, seq: int) -> None:
+    def _account_seq(self, sender: str, seq: int, t: float) -> str | None:
         """Chunks an actor sent that never arrived: gaps in its per-sender sequence
-        (which starts at 0; one that starts over is a restarted actor process)."""
+        (which starts at 0; one that starts over, sent later than the newest, is a
+        restarted actor process). Returns why a chunk is not part of the sequence:
+        ``duplicate`` (a chunk seen before, or an older one replayed: sent no later
+        than the newest) or ``seq_jump`` (more than ``max_seq_gap`` ahead); those
+        change no count but their own, so replays never inflate ``lost``."""
+        recent = self._recent.setdefault(sender, deque(maxlen=64))
+        if (seq, t) in recent:
+            return "duplicate"
         last = self.last_seq.get(sender, -1)   # -1: every chunk before this one is missing
-        if seq <= last:                          # the actor process restarted
+        restart = seq <= last
+        if restart and t <= self.last_seq_t.get(sender, -math.inf):
+            return "duplicate"
+        gap = seq - (-1 if restart else last) - 1
+        if gap > self.cfg.max_seq_gap:
+            return "seq_jump"
+        if restart:                              # the actor process restarted
             self.counts["actor_restarts"] += 1
-            last = -1
-        if seq > last + 1:
-            self.counts["lost"] += seq - last - 1
-            self.m.chunks.labels(**self.labels, outcome="lost").inc(seq - last - 1)
-        self.last_seq[sender] = seq
+        if gap > 0:
+            self.counts["lost"] += gap
+            self.m.chunks.labels(**self.labels, outcome="lost").inc(gap)
+        self.last_seq[sender], self.last_seq_t[sender] = seq, t
+        recent.append((seq, t))
+        return None
 
     def _drop(self, why: str) -> None:
         self.counts[why] += 1
