@@ -11,6 +11,10 @@ from collections.abc import Sequence
 from common import keys, wire
 from common.transport import Bus, TlsFiles
 
+# A service's exit code for a fault restarting cannot fix (every checkpoint of the
+# run directory damaged): the supervisor stops the run with it instead of restarting
+EXIT_FATAL = 4
+
 
 def status_line(fresh: dict[str, dict], latest: dict[str, dict] | None = None) -> str:
     """One line from the heartbeats: env steps/s (sum over actors heard from

@@ -14,7 +14,9 @@ from collections import defaultdict, deque
 from prometheus_client import CollectorRegistry
 
 from common import keys, wire
+from common.checkpoint import CheckpointError
 from common.metrics_prom import SageMetrics, serve_metrics
+from common.status import EXIT_FATAL
 from common.transport import Bus
 from services.config import TrainConfig
 
@@ -168,7 +170,11 @@ def run_entry(role: str, make_service, argv=None) -> int:
     bus = Bus.from_transport(cfg.transport, role=role, mode=mode)   # TLS identity of this role, if configured
     try:
         service = make_service(cfg, bus, member, registry, stop)
-        return int(service.run() or 0)
+        try:
+            return int(service.run() or 0)
+        except CheckpointError as exc:   # restarting cannot fix it: one line, and the run stops
+            log.error("%s", exc)
+            return EXIT_FATAL
     finally:
         bus.close()
         if server is not None:
