@@ -39,7 +39,12 @@ MANIFEST = "manifest.json"
 
 
 class CheckpointError(RuntimeError):
-    """Checkpoints exist but none of them loads as this run's checkpoint."""
+    """Checkpoints exist but none of them loads as this run's checkpoint;
+    ``failures``: one "<file>: <why>" per checkpoint, newest first."""
+
+    def __init__(self, message: str, failures: list[str]):
+        super().__init__(message)
+        self.failures = failures
 
 
 def checkpoint_path(directory: str | Path, version: int) -> Path:
@@ -160,5 +165,5 @@ def load_latest(directory: str | Path) -> dict | None:
     if failures:
         raise CheckpointError(f"{d}: none of its {len(failures)} checkpoint(s) loads (newest: {failures[0]}); "
                               "refusing to start over from update 0: restore a checkpoint there or use a "
-                              "new run directory")
+                              "new run directory", failures)
     return None

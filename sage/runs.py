@@ -61,7 +61,8 @@ def load_run(path: str | Path) -> tuple[TrainConfig, dict, int]:
         try:
             ck = load_latest(run.checkpoints)
         except CheckpointError as exc:
-            raise ValueError(str(exc)) from None
+            raise ValueError(f"{p}: no loadable checkpoint under checkpoints/ ({len(exc.failures)} there, "
+                             f"none loads; newest {exc.failures[0]})") from None
         if ck is None:
             found = len(list_checkpoints(run.checkpoints))
             raise FileNotFoundError(f"{p}: no loadable checkpoint under checkpoints/"
