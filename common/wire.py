@@ -254,6 +254,20 @@ TRAJ_STEP_FIELDS: tuple[str, ...] = tuple(
 
 
 
+def traj_bytes_bound(T: int, K: int, M: int, O: int, S: int) -> int:
+    """An upper bound on the encoded size of a trajectory chunk of T steps of K
+    envs (M rows, obs_dim O, state_dim S): every array element counted at 8
+    bytes (the widest allowed dtype), up to one finished-episode map of 16
+    numbers per env step, and 64 KiB for msgpack framing and the header. The
+    largest message a run sends, and so the transport's limit for it."""
+    dims = {"T": T, "K": K, "M": M, "O": O, "S": S}
+    elements = 0
+    for spec in SCHEMAS["traj"].values():
+        if isinstance(spec, Arr):
+            elements += math.prod(dims.get(s, s) if isinstance(s, str) else s for s in spec.shape)
+    return 8 * elements + T * K * 16 * 40 + 64 * 1024
+
+
 # --------------------------------------------------------------------------- encode
 def _enc_array(a: np.ndarray) -> dict:
     a = np.asarray(a)
@@ -530,20 +544,22 @@ def _validate_body(kind: str, body, bounds: dict[str, int] | None = None) -> dic
 
 
 def decode(payload: bytes, *, run_id: str, expect: str | tuple[str, ...] | None = None,
-           bounds: dict[str, int] | None = None) -> Message:
+           bounds: dict[str, int] | None = None, max_bytes: int = MAX_MESSAGE_BYTES) -> Message:
     """Parse and validate one message; raise ``WireError`` on anything wrong
     (and nothing else, whatever the bytes).
 
     ``run_id`` must match the envelope (runs never cross-talk even if keys are
     misrouted); ``expect`` restricts the accepted kind(s). ``bounds``: the
     largest size a shape symbol may take in this run (e.g. a shield request's
-    ``B`` and ``M`` from the run's spec); a larger one is a ``limit``.
+    ``B`` and ``M`` from the run's spec); a larger one is a ``limit``, as is
+    a payload over ``max_bytes`` (a run's own bound, at most MAX_MESSAGE_BYTES).
     """
     if not isinstance(payload, (bytes, bytearray, memoryview)):
         raise WireError("malformed", "payload is not bytes")
     size = payload.nbytes if isinstance(payload, memoryview) else len(payload)
-    if size > MAX_MESSAGE_BYTES:
-        raise WireError("limit", f"{size} bytes > {MAX_MESSAGE_BYTES}")
+    limit = min(int(max_bytes), MAX_MESSAGE_BYTES)
+    if size > limit:
+        raise WireError("limit", f"{size} bytes > {limit}")
     env = _unpack(bytes(payload))
     if isinstance(env, (dict, list)):
         _check_depth(env)

@@ -44,6 +44,10 @@ class TransportConfig:
     tls_cert: str = ""           # this process's certificate, e.g. "certs/{role}.pem"
     tls_key: str = ""            # its private key, e.g. "certs/{role}.key"
     tls_verify_name: bool = True  # the router's certificate must name the host in the endpoint
+    # Largest message a Zenoh link of this run accepts (transport/link/rx/max_message_size,
+    # on every session and the run's router) and services decode; 0 = the run's own bound
+    # (TrainConfig.message_bytes_bound: its largest chunk, from T, K and M)
+    max_message_bytes: int = 0
 
 
 @dataclass
@@ -186,6 +190,19 @@ class TrainConfig:
             self.algo = build_dataclass(AlgoConfig, {**self.algo, "seed": self.seed})
 
     # -------------------------------------------------------------- helpers
+    def message_bytes_bound(self) -> int:
+        """The largest message this run's services accept: ``transport.max_message_bytes``,
+        or (0) a bound on its own largest message, a trajectory chunk of its T, K and M
+        (``wire.traj_bytes_bound``; at least 8 MiB for parameters and everything else),
+        never above ``wire.MAX_MESSAGE_BYTES``."""
+        from common import wire
+        from common.env.observations import OBS_DIM, STATE_DIM
+
+        if self.transport.max_message_bytes > 0:
+            return min(int(self.transport.max_message_bytes), wire.MAX_MESSAGE_BYTES)
+        chunk = wire.traj_bytes_bound(self.chunk_len, self.envs_per_actor, self.env.max_rows, OBS_DIM, STATE_DIM)
+        return min(max(chunk, 8 * 1024 * 1024), wire.MAX_MESSAGE_BYTES)
+
     def validate(self) -> "TrainConfig":
         # Types first (a config.json or an override may carry "x" for a number):
         # each plain field of this config and of its service sections must have
