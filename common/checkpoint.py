@@ -30,8 +30,6 @@ import re
 import tempfile
 from pathlib import Path
 
-import torch
-
 log = logging.getLogger(__name__)
 
 _NAME = re.compile(r"^ckpt_(\d{8,})\.pt$")
@@ -78,6 +76,8 @@ def save_checkpoint(directory: str | Path, version: int, payload: dict, keep: in
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
     final = checkpoint_path(d, version)
+    import torch   # here, not at import: services import CheckpointError without torch's ~200 MB
+
     buf = io.BytesIO()
     torch.save(payload, buf)
     data = buf.getvalue()
@@ -124,6 +124,8 @@ def list_checkpoints(directory: str | Path) -> list[Path]:
 
 
 def load_checkpoint(path: str | Path) -> dict:
+    import torch
+
     return torch.load(path, map_location="cpu", weights_only=True)
 
 
@@ -132,6 +134,8 @@ def _load_checked(path: Path, entry: dict | None) -> dict:
     if entry is not None:
         if len(data) != entry["bytes"] or hashlib.sha256(data).hexdigest() != entry["sha256"]:
             raise ValueError("content does not match the manifest's hash")
+    import torch
+
     ck = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     m = _NAME.match(path.name)
     if not isinstance(ck, dict) or "version" not in ck or int(ck["version"]) != int(m.group(1)):
