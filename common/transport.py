@@ -46,11 +46,18 @@ class TlsFiles:
     def enabled(self) -> bool:
         return bool(self.root_ca or self.cert or self.key)
 
-    def for_role(self, role: str | None) -> "TlsFiles":
+    def for_role(self, role: str | None, member: int | str | None = None) -> "TlsFiles":
+        """The paths with ``{role}`` filled; with ``member``, ``<role>-<member>``
+        where that identity's own certificate and key exist (per-actor
+        certificates, deploy/tls.py ``actor_cn``), else ``<role>``."""
         if role is None:
             if "{role}" in self.cert + self.key:
                 raise ValueError("TLS paths contain {role} but no role was given")
             return self
+        if member is not None and "{role}" in self.cert:
+            own = f"{role}-{member}"
+            if Path(self.cert.replace("{role}", own)).is_file() and Path(self.key.replace("{role}", own)).is_file():
+                role = own
         return TlsFiles(self.root_ca.replace("{role}", role), self.cert.replace("{role}", role),
                         self.key.replace("{role}", role), self.verify_name)
 
@@ -174,26 +181,29 @@ class Bus:
     @classmethod
     def open(cls, *, connect: Sequence[str] = (), listen: Sequence[str] = (),
              mode: str = "peer", inprocess: bool = False,
-             tls: TlsFiles | None = None, role: str | None = None, max_message_bytes: int = 0) -> "Bus":
+             tls: TlsFiles | None = None, role: str | None = None, max_message_bytes: int = 0,
+             member: int | str | None = None) -> "Bus":
         """``tls``: this process's certificate files (``role`` fills a
         ``{role}`` placeholder in their paths); ignored in-process.
         ``max_message_bytes``: Zenoh's limit on a received message (0: Zenoh's)."""
         if inprocess:
             connect, listen, tls = (), (), None
         if tls is not None:
-            tls = tls.for_role(role) if tls.enabled else None
+            tls = tls.for_role(role, member) if tls.enabled else None
         return cls(zenoh.open(zenoh_config(connect=connect, listen=listen, mode=mode, tls=tls,
                                            max_message_bytes=max_message_bytes)),
                    declare_publishers=tls is None)
 
     @classmethod
     def from_transport(cls, transport, *, role: str | None = None, mode: str | None = None,
-                       inprocess: bool = False, max_message_bytes: int = 0) -> "Bus":
+                       inprocess: bool = False, max_message_bytes: int = 0,
+                       member: int | str | None = None) -> "Bus":
         """``Bus.open`` from a ``services.config.TransportConfig`` (endpoints,
         mode and the ``tls_*`` fields); ``mode`` overrides the config's."""
         return cls.open(connect=list(transport.connect), listen=list(transport.listen),
                         mode=mode or transport.mode, inprocess=inprocess,
-                        tls=TlsFiles.from_transport(transport), role=role, max_message_bytes=max_message_bytes)
+                        tls=TlsFiles.from_transport(transport), role=role, max_message_bytes=max_message_bytes,
+                        member=member)
 
     # ------------------------------------------------------------- pub/sub
     def publish(self, key: str, payload: bytes) -> None:

@@ -47,7 +47,7 @@ def router_config(config_path: str | Path = DEFAULT_CONFIG, listen: list[str] | 
 
 
 def secure_router_config(certs_dir: str | Path, listen: list[str] | None = None, run_id: str | None = None,
-                         max_message_bytes: int = 0):
+                         max_message_bytes: int = 0, actors: int = 0):
     """The router's ``zenoh.Config`` with mutual TLS and the per-role access
     control of ``deploy/tls.py`` (``certs_dir`` holds ca.pem, router.pem, router.key)."""
     import zenoh
@@ -56,7 +56,7 @@ def secure_router_config(certs_dir: str | Path, listen: list[str] | None = None,
 
     from common.transport import MAX_MESSAGE_SIZE_KEY
 
-    body = build(certs_dir, run_id=run_id, listen=listen or ["tls/127.0.0.1:7447"])
+    body = build(certs_dir, run_id=run_id, listen=listen or ["tls/127.0.0.1:7447"], actors=actors)
     cfg = zenoh.Config.from_json5(json.dumps(body))
     if max_message_bytes > 0:
         cfg.insert_json5(MAX_MESSAGE_SIZE_KEY, json.dumps(int(max_message_bytes)))
@@ -85,6 +85,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="secure profile instead of --config: TLS-only, client certificates required, "
                         "per-role access control (certificates from `python -m deploy.tls certs`)")
     p.add_argument("--run-id", default=None, help="with --tls-certs: allow only keys of sage/<run-id>/ (default: any run)")
+    p.add_argument("--actors", type=int, default=0,
+                   help="with --tls-certs: one identity per actor id (certificates actor-<i>.pem from "
+                        "`python -m deploy.tls certs --actors N`): each actor publishes only as itself")
     p.add_argument("--max-message-bytes", type=int, default=0,
                    help="largest message a link may carry (Zenoh's transport/link/rx/max_message_size; "
                         "0: Zenoh's default, 1 GiB); `sage up` passes its run's bound")
@@ -97,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     if args.tls_certs:
-        cfg = secure_router_config(args.tls_certs, args.listen, args.run_id, args.max_message_bytes)
+        cfg = secure_router_config(args.tls_certs, args.listen, args.run_id, args.max_message_bytes, args.actors)
     else:
         cfg = router_config(args.config, args.listen, args.max_message_bytes)
     session = zenoh.open(cfg)

@@ -197,7 +197,9 @@ def run_entry(role: str, make_service, argv=None) -> int:
         # partners' publications routed to it; as a client it does.
         mode = "client"
     # TLS identity of this role, if configured; Zenoh refuses messages past the run's bound
-    bus = Bus.from_transport(cfg.transport, role=role, mode=mode, max_message_bytes=cfg.message_bytes_bound())
+    # (an actor uses its own certificate, actor-<id>, where the run has per-actor ones)
+    bus = Bus.from_transport(cfg.transport, role=role, mode=mode, max_message_bytes=cfg.message_bytes_bound(),
+                             member=member if role == "actor" else None)
     try:
         service = make_service(cfg, bus, member, registry, stop)
         try:

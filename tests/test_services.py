@@ -365,3 +365,15 @@ def test_replayed_and_far_future_chunks_never_inflate_lost(tmp_path):
     assert learner.counts["actor_restarts"] == 1 and learner.counts["lost"] == 2
     learner._admit(chunk(cfg.max_seq_gap + 1, 31.0))   # the largest gap still counted
     assert learner.counts["lost"] == 2 + cfg.max_seq_gap
+
+
+def test_a_chunk_must_arrive_on_its_own_actors_key(tmp_path):
+    """The key a chunk came on names its actor: under per-actor TLS certificates only
+    actor i may publish traj/<i>, so a chunk there claiming another id is refused."""
+    cfg = make_cfg(tmp_path)
+    learner = LearnerService(cfg, None, 0, CollectorRegistry(), threading.Event(), method=FakeMethod())
+    body = {"incarnation": learner.incarnation, "version": 0, "actor_id": 1, "version_t": np.asarray([0], np.int64)}
+    learner._admit(wire.Message("traj", cfg.run_id, "actor/1", 0, 1.0, body), key_id="0")
+    assert learner.counts["actor_id"] == 1 and not learner.pending
+    learner._admit(wire.Message("traj", cfg.run_id, "actor/1", 0, 1.0, body), key_id="1")
+    assert len(learner.pending) == 1

@@ -190,7 +190,7 @@ class LearnerService(Service):
         self.updates = 0
         self.env_steps = 0
         # bounded: a flood (or a slow update) drops chunks, counted, instead of growing memory
-        self.chunks: queue.Queue[bytes] = queue.Queue(maxsize=cfg.learner_queue_chunks)
+        self.chunks: queue.Queue[tuple[str, bytes]] = queue.Queue(maxsize=cfg.learner_queue_chunks)
         self.pending: deque[dict] = deque()
         # chunk outcomes; "lost" counts chunks an actor sent that never reached an update
         # here (gaps in its chunk sequence: sent while this learner was down, or received
@@ -343,16 +343,19 @@ class LearnerService(Service):
                 "deploy_correction": e["correction_mean"], "deploy_probe_s": time.perf_counter() - t0}
 
     # ------------------------------------------------------------- chunks
-    def _on_traj(self, _key: str, payload: bytes) -> None:
+    def _on_traj(self, key: str, payload: bytes) -> None:
         try:
-            self.chunks.put_nowait(payload)  # decode on the learner thread, not Zenoh's
+            # decode on the learner thread, not Zenoh's; the key's actor id goes along: under
+            # the TLS profile with per-actor certificates only actor i may publish traj/<i>
+            self.chunks.put_nowait((key.rsplit("/", 1)[-1], payload))
         except queue.Full:
             self._drop("queue_full")
             self.m.dropped.labels(**self.labels, queue="learner_chunks").inc()
 
-    def _admit(self, msg) -> None:
+    def _admit(self, msg, key_id: str | None = None) -> None:
         body = msg.body
-        if not 0 <= body["actor_id"] < self.cfg.actors or msg.sender != f"actor/{body['actor_id']}":
+        if not 0 <= body["actor_id"] < self.cfg.actors or msg.sender != f"actor/{body['actor_id']}" \
+                or (key_id is not None and key_id != str(body["actor_id"])):
             self._drop("actor_id")   # not one of this run's actors: not part of any actor's sequence
             return
         replay = self._account_seq(msg.sender, msg.seq, msg.t)
@@ -421,12 +424,12 @@ class LearnerService(Service):
     def drain(self) -> None:
         while True:
             try:
-                payload = self.chunks.get_nowait()
+                key_id, payload = self.chunks.get_nowait()
             except queue.Empty:
                 return
             msg = self.decode(payload, "traj")
             if msg is not None:
-                self._admit(msg)
+                self._admit(msg, key_id)
 
     def try_update(self) -> bool:
         # chunks may have become stale while waiting (an update happened)
