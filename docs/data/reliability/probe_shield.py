@@ -3,7 +3,7 @@ sys.path.insert(0, "tests")
 import numpy as np
 from common import keys, wire
 from common.transport import Bus
-from services.config import TrainConfig, ShieldConfig
+from services.config import TrainConfig
 from services.shield.service import ShieldService
 cfg = TrainConfig(run_id="p", run_dir="/tmp/sage_probe_run", actors=2, envs_per_actor=32).validate()
 bus = Bus.open(inprocess=True); stop = threading.Event()
