@@ -49,7 +49,9 @@ from common.keys import PREFIX, check_id
 # identity) read status/** and may publish a control stop.
 ROLE_PERMISSIONS: dict[str, dict[str, tuple[str, ...]]] = {
     "learner": {"put": ("params", "status/learner/*"), "subscribe": ("traj/*", "control")},
-    "actor": {"put": ("traj/*", "status/actor/*", "trace/*"), "subscribe": ("params", "control"), "query": ("shield/*",)},
+    # actors read the learner's heartbeat: parameter versions are fenced by it (services/actor)
+    "actor": {"put": ("traj/*", "status/actor/*", "trace/*"), "subscribe": ("params", "control", "status/learner/*"),
+              "query": ("shield/*",)},
     "shield": {"put": ("status/shield/*",), "subscribe": ("control",), "serve": ("shield/*",)},
     "supervisor": {"put": ("control", "status/supervisor/*"), "subscribe": ("status/**",)},
     "cli": {"put": ("control",), "subscribe": ("status/**", "trace/*")},

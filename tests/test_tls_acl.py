@@ -241,8 +241,9 @@ def test_actor_cannot_answer_as_the_shield(router, open_bus):
 def test_legitimate_role_traffic_flows(router, open_bus):
     learner, actor, shield, supervisor = (open_bus("learner"), open_bus("actor"), open_bus("shield"),
                                           open_bus("supervisor"))
-    a_params, a_control, l_traj, l_control, s_control, sup_status = (Inbox() for _ in range(6))
+    a_params, a_control, l_traj, l_control, s_control, sup_status, a_heartbeat = (Inbox() for _ in range(7))
     actor.subscribe(keys.params(RUN), a_params)
+    actor.subscribe(keys.status(RUN, "learner", 0), a_heartbeat)   # parameter fencing reads it
     actor.subscribe(keys.control(RUN), a_control)
     learner.subscribe(keys.traj_all(RUN), l_traj)
     learner.subscribe(keys.control(RUN), l_control)
@@ -259,8 +260,8 @@ def test_legitimate_role_traffic_flows(router, open_bus):
             bus.publish(keys.status(RUN, role, 0), role.encode())
         reply = actor.request(keys.shield(RUN), b"rows", timeout=5.0)
         assert reply is not None and reply.ok == b"action" and queries == [b"rows"]
-        wait_for(lambda: a_params.payloads() and l_traj.payloads() and len(sup_status.items) == 3, 5,
-                 "params, traj and three status messages")
+        wait_for(lambda: a_params.payloads() and l_traj.payloads() and len(sup_status.items) == 3
+                 and a_heartbeat.payloads(), 5, "params, traj, three status messages and the learner's at the actor")
         assert a_params.payloads() == [b"v1"]
         assert l_traj.items == [("traj/3", b"chunk")]
         assert sorted(sup_status.items) == [("status/actor/0", b"actor"), ("status/learner/0", b"learner"),
