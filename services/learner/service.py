@@ -38,7 +38,7 @@ from services.config import DEPLOY_PROBE_SEED
 
 
 CHUNK_OUTCOMES = ("used", "stale", "incarnation", "shape", "future", "actor_id", "overflow", "queue_full",
-                  "lost", "actor_restarts", "duplicate", "seq_jump")
+                  "lost", "actor_restarts", "duplicate", "seq_jump", "unused_restart")
 
 
 def tensorboard_available() -> bool:
@@ -258,7 +258,9 @@ class LearnerService(Service):
             "version": self.version,
             "updates": self.updates,
             "env_steps": self.env_steps,
-            "counts": dict(self.counts),
+            # chunks admitted but not yet used are gone for a learner resumed from here:
+            # counted, so that every chunk of an actor's sequence has exactly one outcome
+            "counts": {**self.counts, "unused_restart": self.counts["unused_restart"] + len(self.pending)},
             "last_seq": dict(self.last_seq),
             "last_seq_t": dict(self.last_seq_t),
             "unfiltered_steps": self.unfiltered_steps,
