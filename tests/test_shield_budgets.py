@@ -150,3 +150,29 @@ def test_a_query_older_than_the_actors_timeout_is_not_solved(tmp_path, bus):
     assert shield.n_expired == 1 and calls == [2]
     stop.set()
     th.join(5)
+
+
+class _Req:
+    def __init__(self, payload):
+        self.payload, self.t_recv, self.errors = payload, time.perf_counter(), []
+
+    def reply_err(self, payload):
+        self.errors.append(payload)
+
+    def finish(self):
+        pass
+
+
+def test_a_flood_under_ever_new_sender_names_stays_within_the_queue_bound(tmp_path):
+    from prometheus_client import CollectorRegistry
+
+    cfg = make_cfg(tmp_path, shield=ShieldConfig(max_queue=8))
+    shield = ShieldService(cfg, None, registry=CollectorRegistry(), stop=threading.Event())
+    reqs = [_Req(wire.encode("shield_req", _req(2, i), run_id=cfg.run_id, sender=f"actor/forged{i}", seq=0))
+            for i in range(20)]
+    for r in reqs:
+        shield._admit(r)
+    assert shield._n_pending == 8 and len(shield._pending) == 8            # bounded in all, not per name only
+    refused = [r for r in reqs if r.errors]
+    assert len(refused) == shield.n_unfair == 12 and all(r.errors[0].startswith(b"overloaded") for r in refused)
+    assert all(r.payload == b"" for r in reqs)                              # no request keeps its bytes

@@ -18,8 +18,8 @@ of at most ``max_rows`` rows, each under the QP's own iteration cap
 refuse). A request that waited longer than the actors' ``shield_timeout_s``
 is not solved (its asker gave up; answered ``expired``, counted). Service is
 fair across senders: decoded requests wait in one bounded FIFO per sender
-(``shield.max_pending_per_sender``, overflow answered ``overloaded`` and
-counted) and each batch takes them round-robin, so a flooding sender gets its
+(``shield.max_pending_per_sender``, and ``shield.max_queue`` in all; overflow
+answered ``overloaded`` and counted) and each batch takes them round-robin, so a flooding sender gets its
 share of the solver and no more.
 """
 from __future__ import annotations
@@ -62,6 +62,7 @@ class ShieldService(Service):
         # decoded requests waiting for a batch, one FIFO per sender (round-robin service)
         self._pending: OrderedDict[str, deque[tuple[Request, dict]]] = OrderedDict()
         self._pending_rows = 0
+        self._n_pending = 0   # queries in all FIFOs together, at most shield.max_queue
         self.n_expired = 0    # requests older than the actors' timeout, not solved
         self.n_unfair = 0     # requests refused because their sender already had its share waiting
         # the run's spec caps one request (wire "limit" beyond): rows per problem, problems
@@ -116,6 +117,7 @@ class ShieldService(Service):
             for req, _ in waiting:
                 req.reply_err(b"stopping: shield shutting down")
         self._pending.clear()
+        self._n_pending = self._pending_rows = 0
         while True:
             try:
                 q.get_nowait().reply_err(b"stopping: shield shutting down")
@@ -158,14 +160,16 @@ class ShieldService(Service):
         if msg is None:
             self._error(req, "rejected", "request failed wire validation")
             return
-        waiting = self._pending.setdefault(msg.sender, deque())
-        if len(waiting) >= self.cfg.shield.max_pending_per_sender:
+        waiting = self._pending.get(msg.sender, ())
+        if len(waiting) >= self.cfg.shield.max_pending_per_sender or self._n_pending >= self.cfg.shield.max_queue:
+            # one sender's share, or all of them (a flood under ever new sender names)
             self.n_unfair += 1
             self.m.dropped.labels(**self.labels, queue="shield_sender").inc()
-            self._error(req, "overloaded", f"{msg.sender} already has {len(waiting)} queries waiting, retry")
+            self._error(req, "overloaded", f"{msg.sender} has {len(waiting)} of {self._n_pending} queries waiting, retry")
             return
-        waiting.append((req, msg.body))
+        self._pending.setdefault(msg.sender, deque()).append((req, msg.body))
         self._pending_rows += msg.body["a_prop"].shape[0]
+        self._n_pending += 1
 
     def _fair_batch(self) -> list[tuple[Request, dict]]:
         """Up to ``shield.max_batch`` rows of waiting requests, taken round-robin
@@ -183,6 +187,7 @@ class ShieldService(Service):
                 break
             waiting.popleft()
             self._pending_rows -= n
+            self._n_pending -= 1
             if waiting:
                 self._pending.move_to_end(sender)   # its next request waits for the others' turn
             else:
