@@ -282,6 +282,9 @@ class TrainConfig:
             raise ValueError("torch_threads must be >= 0 (0 = torch default)")
         if self.deploy_probe_every < 0 or self.deploy_probe_episodes < 1:
             raise ValueError("deploy_probe_every must be >= 0 and deploy_probe_episodes >= 1")
+        if self.transport.max_message_bytes < 0:
+            raise ValueError(f"transport.max_message_bytes must be >= 0 (0: the run's own bound), "
+                             f"got {self.transport.max_message_bytes}")
         if self.max_seq_gap < 1:
             raise ValueError(f"max_seq_gap must be >= 1, got {self.max_seq_gap}")
         if self.max_lag < 0 or self.chunks_per_update < 0:

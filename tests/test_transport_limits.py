@@ -77,3 +77,17 @@ def test_services_refuse_a_payload_past_the_runs_bound_before_unpacking(tmp_path
     assert shield.decode(big, "control") is not None
     assert shield.decode(big + b"\0" * (1 << 20), "control") is None
     assert shield.rejected["limit"] == 1
+
+
+def test_the_new_bounds_refuse_values_that_would_disable_them():
+    import pytest
+
+    from services.config import ActorConfig, ShieldConfig
+
+    for kw, name in ((dict(transport=TransportConfig(max_message_bytes=-1)), "max_message_bytes"),
+                     (dict(max_seq_gap=0), "max_seq_gap"),
+                     (dict(actor=ActorConfig(max_version_step=0)), "max_version_step"),
+                     (dict(shield=ShieldConfig(max_pending_per_sender=0)), "max_pending_per_sender")):
+        with pytest.raises(ValueError, match=name):
+            TrainConfig(run_id="x", **kw).validate()
+    TrainConfig(run_id="x", transport=TransportConfig(max_message_bytes=0)).validate()   # 0: the run's own bound
