@@ -74,7 +74,8 @@ class ShieldService(Service):
                           "dropped": float(self.n_dropped), "expired": float(self.n_expired),
                           "sender_overflow": float(self.n_unfair),
                           "rows_per_s": self.rows_rate.rate(), "busy_s_total": self.busy_s,
-                          "queue_depth": float(self._queue.qsize() if self._queue else 0)}}
+                          "queue_depth": float(self._queue.qsize() if self._queue else 0),
+                          "waiting": float(self._n_pending)}}
 
     # ------------------------------------------------------------- loop
     def warm_up(self) -> None:
