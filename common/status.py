@@ -11,6 +11,10 @@ from collections.abc import Sequence
 from common import keys, wire
 from common.transport import Bus, TlsFiles
 
+# A service's exit code for a fault restarting cannot fix (every checkpoint of the
+# run directory damaged): the supervisor stops the run with it instead of restarting
+EXIT_FATAL = 4
+
 
 # a learner budget of this many updates or more is "no update budget" (a --minutes run)
 UNBOUNDED_UPDATES = 10**8

@@ -46,11 +46,18 @@ class TlsFiles:
     def enabled(self) -> bool:
         return bool(self.root_ca or self.cert or self.key)
 
-    def for_role(self, role: str | None) -> "TlsFiles":
+    def for_role(self, role: str | None, member: int | str | None = None) -> "TlsFiles":
+        """The paths with ``{role}`` filled; with ``member``, ``<role>-<member>``
+        where that identity's own certificate and key exist (per-actor
+        certificates, deploy/tls.py ``actor_cn``), else ``<role>``."""
         if role is None:
             if "{role}" in self.cert + self.key:
                 raise ValueError("TLS paths contain {role} but no role was given")
             return self
+        if member is not None and "{role}" in self.cert:
+            own = f"{role}-{member}"
+            if Path(self.cert.replace("{role}", own)).is_file() and Path(self.key.replace("{role}", own)).is_file():
+                role = own
         return TlsFiles(self.root_ca.replace("{role}", role), self.cert.replace("{role}", role),
                         self.key.replace("{role}", role), self.verify_name)
 
@@ -85,16 +92,21 @@ def tls_link_config(tls: TlsFiles, *, listen: bool = False) -> dict:
     return d
 
 
+MAX_MESSAGE_SIZE_KEY = "transport/link/rx/max_message_size"
+
+
 def zenoh_config(*, connect: Sequence[str] = (), listen: Sequence[str] = (),
                  mode: str = "peer", multicast_scouting: bool = False,
-                 tls: TlsFiles | None = None) -> zenoh.Config:
+                 tls: TlsFiles | None = None, max_message_bytes: int = 0) -> zenoh.Config:
     """Zenoh config with explicit endpoints only.
 
     Multicast scouting is off by default so a process never attaches to a
     stranger's network by accident; multi-host runs list a router in
     ``connect`` (docs/wire.md, deploy/). ``tls`` (see ``TlsFiles``) adds the
     TLS link settings; with it every endpoint must be a ``tls/`` one, so a
-    typo can never silently fall back to plain TCP.
+    typo can never silently fall back to plain TCP. ``max_message_bytes`` (> 0)
+    is Zenoh's own limit on a message a link receives (Zenoh's default is
+    1 GiB): a larger one is never reassembled, so it costs no memory here.
     """
     if mode not in ("peer", "client", "router"):
         raise ValueError(f"zenoh mode {mode!r}")
@@ -110,6 +122,8 @@ def zenoh_config(*, connect: Sequence[str] = (), listen: Sequence[str] = (),
     cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if tls is not None and tls.enabled:
         cfg.insert_json5("transport/link/tls", json.dumps(tls_link_config(tls, listen=bool(listen))))
+    if max_message_bytes > 0:
+        cfg.insert_json5(MAX_MESSAGE_SIZE_KEY, json.dumps(int(max_message_bytes)))
     return cfg
 
 
@@ -167,24 +181,29 @@ class Bus:
     @classmethod
     def open(cls, *, connect: Sequence[str] = (), listen: Sequence[str] = (),
              mode: str = "peer", inprocess: bool = False,
-             tls: TlsFiles | None = None, role: str | None = None) -> "Bus":
+             tls: TlsFiles | None = None, role: str | None = None, max_message_bytes: int = 0,
+             member: int | str | None = None) -> "Bus":
         """``tls``: this process's certificate files (``role`` fills a
-        ``{role}`` placeholder in their paths); ignored in-process."""
+        ``{role}`` placeholder in their paths); ignored in-process.
+        ``max_message_bytes``: Zenoh's limit on a received message (0: Zenoh's)."""
         if inprocess:
             connect, listen, tls = (), (), None
         if tls is not None:
-            tls = tls.for_role(role) if tls.enabled else None
-        return cls(zenoh.open(zenoh_config(connect=connect, listen=listen, mode=mode, tls=tls)),
+            tls = tls.for_role(role, member) if tls.enabled else None
+        return cls(zenoh.open(zenoh_config(connect=connect, listen=listen, mode=mode, tls=tls,
+                                           max_message_bytes=max_message_bytes)),
                    declare_publishers=tls is None)
 
     @classmethod
     def from_transport(cls, transport, *, role: str | None = None, mode: str | None = None,
-                       inprocess: bool = False) -> "Bus":
+                       inprocess: bool = False, max_message_bytes: int = 0,
+                       member: int | str | None = None) -> "Bus":
         """``Bus.open`` from a ``services.config.TransportConfig`` (endpoints,
         mode and the ``tls_*`` fields); ``mode`` overrides the config's."""
         return cls.open(connect=list(transport.connect), listen=list(transport.listen),
                         mode=mode or transport.mode, inprocess=inprocess,
-                        tls=TlsFiles.from_transport(transport), role=role)
+                        tls=TlsFiles.from_transport(transport), role=role, max_message_bytes=max_message_bytes,
+                        member=member)
 
     # ------------------------------------------------------------- pub/sub
     def publish(self, key: str, payload: bytes) -> None:

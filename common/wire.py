@@ -254,6 +254,20 @@ TRAJ_STEP_FIELDS: tuple[str, ...] = tuple(
 
 
 
+def traj_bytes_bound(T: int, K: int, M: int, O: int, S: int) -> int:
+    """An upper bound on the encoded size of a trajectory chunk of T steps of K
+    envs (M rows, obs_dim O, state_dim S): every array element counted at 8
+    bytes (the widest allowed dtype), up to one finished-episode map of 16
+    numbers per env step, and 64 KiB for msgpack framing and the header. The
+    largest message a run sends, and so the transport's limit for it."""
+    dims = {"T": T, "K": K, "M": M, "O": O, "S": S}
+    elements = 0
+    for spec in SCHEMAS["traj"].values():
+        if isinstance(spec, Arr):
+            elements += math.prod(dims.get(s, s) if isinstance(s, str) else s for s in spec.shape)
+    return 8 * elements + T * K * 16 * 40 + 64 * 1024
+
+
 # --------------------------------------------------------------------------- encode
 def _enc_array(a: np.ndarray) -> dict:
     a = np.asarray(a)
@@ -371,7 +385,7 @@ def _check_depth(env) -> None:
                 stack.append((x, depth + 1))
 
 
-def _dec_array(name: str, v) -> np.ndarray:
+def _dec_array(name: str, v, spec_shape: tuple = (), bounds: dict[str, int] | None = None) -> np.ndarray:
     if not isinstance(v, dict) or set(v) != {"nd", "shape", "data"}:
         raise WireError("type", f"{name}: expected an array map")
     nd = v["nd"]
@@ -392,6 +406,10 @@ def _dec_array(name: str, v) -> np.ndarray:
         elements *= max(s, 1)
     if elements > MAX_ARRAY_ELEMENTS:
         raise WireError("limit", f"{name}: shape {shape} has more than {MAX_ARRAY_ELEMENTS} elements")
+    if bounds:   # the run's caps on shape symbols, before the copy below
+        for want, got in zip(spec_shape, shape):
+            if isinstance(want, str) and want in bounds and got > bounds[want]:
+                raise WireError("limit", f"{name}: {want}={got} > {bounds[want]}, this run's bound")
     data = v["data"]
     if not isinstance(data, bytes):
         raise WireError("type", f"{name}: data is not bytes")
@@ -467,7 +485,7 @@ def _check_float_map(name: str, v) -> dict:
     return out
 
 
-def _validate_body(kind: str, body) -> dict:
+def _validate_body(kind: str, body, bounds: dict[str, int] | None = None) -> dict:
     if not isinstance(body, dict):
         raise WireError("envelope", "body is not a map")
     schema = SCHEMAS[kind]
@@ -503,7 +521,7 @@ def _validate_body(kind: str, body) -> dict:
                 arrs[k] = a
             out[name] = arrs
         elif isinstance(spec, Arr):
-            a = _dec_array(name, v)
+            a = _dec_array(name, v, spec.shape, bounds)
             cat = _CATEGORY[_WIRE_NAME[a.dtype]]
             if cat != spec.category:
                 raise WireError("dtype", f"{name}: {cat} array where {spec.category} expected")
@@ -525,18 +543,23 @@ def _validate_body(kind: str, body) -> dict:
     return out
 
 
-def decode(payload: bytes, *, run_id: str, expect: str | tuple[str, ...] | None = None) -> Message:
+def decode(payload: bytes, *, run_id: str, expect: str | tuple[str, ...] | None = None,
+           bounds: dict[str, int] | None = None, max_bytes: int = MAX_MESSAGE_BYTES) -> Message:
     """Parse and validate one message; raise ``WireError`` on anything wrong
     (and nothing else, whatever the bytes).
 
     ``run_id`` must match the envelope (runs never cross-talk even if keys are
-    misrouted); ``expect`` restricts the accepted kind(s).
+    misrouted); ``expect`` restricts the accepted kind(s). ``bounds``: the
+    largest size a shape symbol may take in this run (e.g. a shield request's
+    ``B`` and ``M`` from the run's spec); a larger one is a ``limit``, as is
+    a payload over ``max_bytes`` (a run's own bound, at most MAX_MESSAGE_BYTES).
     """
     if not isinstance(payload, (bytes, bytearray, memoryview)):
         raise WireError("malformed", "payload is not bytes")
     size = payload.nbytes if isinstance(payload, memoryview) else len(payload)
-    if size > MAX_MESSAGE_BYTES:
-        raise WireError("limit", f"{size} bytes > {MAX_MESSAGE_BYTES}")
+    limit = min(int(max_bytes), MAX_MESSAGE_BYTES)
+    if size > limit:
+        raise WireError("limit", f"{size} bytes > {limit}")
     env = _unpack(bytes(payload))
     if isinstance(env, (dict, list)):
         _check_depth(env)
@@ -567,7 +590,7 @@ def decode(payload: bytes, *, run_id: str, expect: str | tuple[str, ...] | None 
         raise WireError("kind", f"unknown kind {_brief(kind)}")
     if expect is not None and kind not in ((expect,) if isinstance(expect, str) else expect):
         raise WireError("kind", f"got {kind!r}, expected {expect!r}")
-    body = _validate_body(kind, env["body"])
+    body = _validate_body(kind, env["body"], bounds)
     return Message(kind=kind, run_id=env["run"], sender=env["sender"], seq=env["seq"],
                    t=float(env["t"]), body=body)
 

@@ -677,7 +677,8 @@ def prepare(config_path: str | Path, *, actors: int | None = None, roles: Sequen
         tls = TlsFiles.from_transport(cfg.transport)
         port = free_tcp_port()   # free on the driver's node, where the router is placed
         certs = str(Path(tls.root_ca).resolve().parent) if tls is not None else None
-        specs.append(router_spec(port, python, tls_certs=certs, run_id=cfg.run_id))
+        specs.append(router_spec(port, python, tls_certs=certs, run_id=cfg.run_id,
+                                 max_message_bytes=cfg.message_bytes_bound(), actors=cfg.actors))
         cfg.transport.connect = [f"{'tls' if tls is not None else 'tcp'}/127.0.0.1:{port}"]
         cfg.transport.mode = "client"        # everything through the router (deploy/README.md)
     elif cfg.transport.mode != "client":

@@ -25,10 +25,14 @@ from pathlib import Path
 DEFAULT_CONFIG = Path(__file__).with_name("zenoh-router.json5")
 
 
-def router_config(config_path: str | Path = DEFAULT_CONFIG, listen: list[str] | None = None):
+def router_config(config_path: str | Path = DEFAULT_CONFIG, listen: list[str] | None = None,
+                  max_message_bytes: int = 0):
     """The router's ``zenoh.Config``: the JSON5 file, with ``mode`` forced to
-    ``router`` and the listen endpoints replaced when ``listen`` is given."""
+    ``router``, the listen endpoints replaced when ``listen`` is given, and
+    Zenoh's limit on a received message set when ``max_message_bytes`` > 0."""
     import zenoh
+
+    from common.transport import MAX_MESSAGE_SIZE_KEY
 
     path = Path(config_path)
     if not path.is_file():
@@ -37,18 +41,38 @@ def router_config(config_path: str | Path = DEFAULT_CONFIG, listen: list[str] | 
     cfg.insert_json5("mode", json.dumps("router"))
     if listen:
         cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    if max_message_bytes > 0:
+        cfg.insert_json5(MAX_MESSAGE_SIZE_KEY, json.dumps(int(max_message_bytes)))
     return cfg
 
 
-def secure_router_config(certs_dir: str | Path, listen: list[str] | None = None, run_id: str | None = None):
+def secure_router_config(certs_dir: str | Path, listen: list[str] | None = None, run_id: str | None = None,
+                         max_message_bytes: int = 0, actors: int = 0):
     """The router's ``zenoh.Config`` with mutual TLS and the per-role access
     control of ``deploy/tls.py`` (``certs_dir`` holds ca.pem, router.pem, router.key)."""
     import zenoh
 
     from deploy.tls import secure_router_config as build
 
-    body = build(certs_dir, run_id=run_id, listen=listen or ["tls/127.0.0.1:7447"])
-    return zenoh.Config.from_json5(json.dumps(body))
+    from common.transport import MAX_MESSAGE_SIZE_KEY
+
+    body = build(certs_dir, run_id=run_id, listen=listen or ["tls/127.0.0.1:7447"], actors=actors)
+    cfg = zenoh.Config.from_json5(json.dumps(body))
+    if max_message_bytes > 0:
+        cfg.insert_json5(MAX_MESSAGE_SIZE_KEY, json.dumps(int(max_message_bytes)))
+    return cfg
+
+
+def _malloc_trim():
+    """glibc's ``malloc_trim(0)`` (a no-op elsewhere): Zenoh frees a large message's
+    buffers after routing it, but the heap keeps the pages until trimmed."""
+    import ctypes
+
+    try:
+        fn = ctypes.CDLL("libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return lambda: None
+    return lambda: fn(0)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -61,6 +85,12 @@ def main(argv: list[str] | None = None) -> int:
                    help="secure profile instead of --config: TLS-only, client certificates required, "
                         "per-role access control (certificates from `python -m deploy.tls certs`)")
     p.add_argument("--run-id", default=None, help="with --tls-certs: allow only keys of sage/<run-id>/ (default: any run)")
+    p.add_argument("--actors", type=int, default=0,
+                   help="with --tls-certs: one identity per actor id (certificates actor-<i>.pem from "
+                        "`python -m deploy.tls certs --actors N`): each actor publishes only as itself")
+    p.add_argument("--max-message-bytes", type=int, default=0,
+                   help="largest message a link may carry (Zenoh's transport/link/rx/max_message_size; "
+                        "0: Zenoh's default, 1 GiB); `sage up` passes its run's bound")
     args = p.parse_args(argv)
     import zenoh
 
@@ -70,16 +100,17 @@ def main(argv: list[str] | None = None) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     if args.tls_certs:
-        cfg = secure_router_config(args.tls_certs, args.listen, args.run_id)
+        cfg = secure_router_config(args.tls_certs, args.listen, args.run_id, args.max_message_bytes, args.actors)
     else:
-        cfg = router_config(args.config, args.listen)
+        cfg = router_config(args.config, args.listen, args.max_message_bytes)
     session = zenoh.open(cfg)
     endpoints = args.listen or ("tls/127.0.0.1:7447 (mTLS + access control)" if args.tls_certs
                                 else "from " + args.config)
     print(f"zenoh router {session.zid()} listening on {endpoints}", file=sys.stderr, flush=True)
+    trim = _malloc_trim()
     try:
-        while not stop.wait(0.5):
-            pass
+        while not stop.wait(5.0):
+            trim()   # hand the heap that large messages' buffers left behind back to the OS
     finally:
         session.close()  # an unclosed session can keep the interpreter from exiting
     return 0

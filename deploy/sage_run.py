@@ -60,14 +60,21 @@ def service_specs(config_path: str | Path, roles: Sequence[str] = ROLES, actor_i
 
 
 def router_spec(port: int, python: str = sys.executable, host: str = "127.0.0.1",
-                tls_certs: str | None = None, run_id: str | None = None) -> ServiceSpec:
+                tls_certs: str | None = None, run_id: str | None = None, max_message_bytes: int = 0,
+                actors: int = 0) -> ServiceSpec:
     """The local router; with ``tls_certs`` (a ``python -m deploy.tls certs`` folder)
-    TLS-only with client certificates and the per-role access rules of ``run_id``."""
+    TLS-only with client certificates and the per-role access rules of ``run_id``
+    (per actor id too when ``actors`` > 0 and the folder holds ``actor-<i>.pem``);
+    ``max_message_bytes`` > 0: the largest message its links carry (the run's bound)."""
     if tls_certs:
         argv = [python, "-m", "deploy.router", "--listen", f"tls/{host}:{port}", "--tls-certs", str(tls_certs),
                 "--run-id", str(run_id)]
+        if actors > 0 and (Path(tls_certs) / "actor-0.pem").is_file():
+            argv += ["--actors", str(int(actors))]
     else:
         argv = [python, "-m", "deploy.router", "--listen", f"tcp/{host}:{port}"]
+    if max_message_bytes > 0:
+        argv += ["--max-message-bytes", str(int(max_message_bytes))]
     return ServiceSpec("router", argv, stop_wave=1, ready_tcp=(host, port))
 
 
@@ -97,7 +104,8 @@ def run_supervised(config_path: str | Path, *, actors: int | None = None, roles:
         port = free_tcp_port()
         # with TLS configured the local router uses the folder of the run's CA (certs/ca.pem)
         certs = str(Path(tls.root_ca).parent) if tls is not None else None
-        specs.append(router_spec(port, tls_certs=certs, run_id=cfg.run_id))
+        specs.append(router_spec(port, tls_certs=certs, run_id=cfg.run_id, max_message_bytes=cfg.message_bytes_bound(),
+                                 actors=cfg.actors))
         cfg.transport.connect = [f"{'tls' if tls is not None else 'tcp'}/127.0.0.1:{port}"]
         # client mode: everything goes through the router. Peers with gossip
         # off (common/transport.py) attached to one router do not hear each other.

@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Callable, Protocol, Sequence
 
 from common.rundir import RunDir, atomic_write_text
-from common.status import LiveLine
+from common.status import EXIT_FATAL, LiveLine
 
 EXIT_GAVE_UP = 1
 
@@ -205,6 +205,16 @@ class Supervisor:
         self.event(how, service=c.spec.name, pid=pid, code=code, uptime_s=round(uptime, 3))
         return uptime
 
+    def _last_line(self, name: str) -> str:
+        """The last line a service wrote to its log (its reason for EXIT_FATAL)."""
+        try:
+            with open(self.paths.log(name), "rb") as f:
+                f.seek(max(0, os.fstat(f.fileno()).st_size - 4096))
+                lines = [ln for ln in f.read().decode(errors="replace").splitlines() if ln.strip()]
+        except OSError:
+            lines = []
+        return lines[-1].strip()[-600:] if lines else f"exit code {EXIT_FATAL}; see {self.paths.log(name)}"
+
     def _finish(self, code: int, message: str) -> None:
         if self.outcome is None:
             self.outcome = (code, message)
@@ -244,6 +254,11 @@ class Supervisor:
                     c.state = "done"
                     if c.spec.ends_run:
                         self._finish(0, f"{c.spec.name} finished")
+                elif code == EXIT_FATAL:   # a fault restarting cannot fix: stop, with the service's own line
+                    c.state = "failed"
+                    msg = f"{c.spec.name} stopped the run: {self._last_line(c.spec.name)}"
+                    self.event("fatal", service=c.spec.name, code=code, message=msg)
+                    self._finish(EXIT_FATAL, msg)
                 else:
                     self._crashed(c, code, uptime)
             elif c.state == "backoff" and time.monotonic() >= c.next_start:

@@ -49,12 +49,34 @@ from common.keys import PREFIX, check_id
 # identity) read status/** and may publish a control stop.
 ROLE_PERMISSIONS: dict[str, dict[str, tuple[str, ...]]] = {
     "learner": {"put": ("params", "status/learner/*"), "subscribe": ("traj/*", "control")},
-    "actor": {"put": ("traj/*", "status/actor/*", "trace/*"), "subscribe": ("params", "control"), "query": ("shield/*",)},
+    # actors read the learner's heartbeat: parameter versions are fenced by it (services/actor)
+    "actor": {"put": ("traj/*", "status/actor/*", "trace/*"), "subscribe": ("params", "control", "status/learner/*"),
+              "query": ("shield/*",)},
     "shield": {"put": ("status/shield/*",), "subscribe": ("control",), "serve": ("shield/*",)},
     "supervisor": {"put": ("control", "status/supervisor/*"), "subscribe": ("status/**",)},
     "cli": {"put": ("control",), "subscribe": ("status/**", "trace/*")},
 }
 ROLES = tuple(ROLE_PERMISSIONS)
+
+
+def actor_cn(actor_id: int) -> str:
+    """The common name of actor ``actor_id``'s own certificate: with per-actor
+    certificates (``actors`` > 0 below) an actor may publish only under its own
+    id (traj/<id>, status/actor/<id>, trace/<id>), so it cannot send chunks as another."""
+    return f"actor-{int(actor_id)}"
+
+
+def per_actor_permissions(actors: int, permissions: Mapping[str, Mapping[str, Sequence[str]]] = ROLE_PERMISSIONS
+                          ) -> dict[str, dict[str, tuple[str, ...]]]:
+    """``permissions`` with the shared ``actor`` identity replaced by one per actor id:
+    each may read what an actor reads but publish only its own keys."""
+    out = {role: dict(perms) for role, perms in permissions.items() if role != "actor"}
+    base = permissions["actor"]
+    for i in range(int(actors)):
+        own = tuple(k.replace("*", str(i)) if k.startswith(("traj/", "status/actor/", "trace/")) else k
+                    for k in base.get("put", ()))
+        out[actor_cn(i)] = {**base, "put": own}
+    return out
 
 # (messages, flow) at the router for each kind of permission. Ingress = from
 # the role's link into the router, egress = from the router to the role.
@@ -132,10 +154,12 @@ def _is_ip(h: str) -> bool:
 
 
 def make_test_certs(out_dir: str | Path, roles: Iterable[str] = ROLES,
-                    router_hosts: Iterable[str] = ("127.0.0.1", "localhost"), days: int = 365) -> dict[str, Path]:
+                    router_hosts: Iterable[str] = ("127.0.0.1", "localhost"), days: int = 365,
+                    actors: int = 0) -> dict[str, Path]:
     """CA (``ca.pem``/``ca.key``), the router's pair (``router.pem``/``.key``,
     subjectAltName = ``router_hosts``) and ``<role>.pem``/``<role>.key`` with
-    CN = role for every role. Returns {name: path}."""
+    CN = role for every role; with ``actors`` > 0 also ``actor-<i>.pem``/``.key``
+    (CN = ``actor_cn(i)``) for each actor id. Returns {name: path}."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     # private keys must never end up in a commit (e.g. --out deploy/certs)
@@ -143,7 +167,7 @@ def make_test_certs(out_dir: str | Path, roles: Iterable[str] = ROLES,
     ca = make_ca(out)
     files = {"ca": ca[0], "ca_key": ca[1]}
     files["router"], files["router_key"] = make_cert(out, "router", ca, hosts=router_hosts, days=days)
-    for role in roles:
+    for role in [*roles, *(actor_cn(i) for i in range(int(actors)))]:
         check_id(role, "role")
         files[role], files[f"{role}_key"] = make_cert(out, role, ca, days=days)
     return files
@@ -151,10 +175,14 @@ def make_test_certs(out_dir: str | Path, roles: Iterable[str] = ROLES,
 
 # --------------------------------------------------------------- router config
 def access_control(run_id: str | None = None,
-                   permissions: Mapping[str, Mapping[str, Sequence[str]]] = ROLE_PERMISSIONS) -> dict:
+                   permissions: Mapping[str, Mapping[str, Sequence[str]]] = ROLE_PERMISSIONS,
+                   actors: int = 0) -> dict:
     """Zenoh 1.x ``access_control`` section: default deny, and for every role
     one subject (``cert_common_names: [role]``), its rules and one policy.
-    ``run_id=None`` writes ``sage/*/...`` (any run on this router)."""
+    ``run_id=None`` writes ``sage/*/...`` (any run on this router). ``actors`` > 0:
+    one identity per actor id instead of the shared one (``per_actor_permissions``)."""
+    if actors > 0:
+        permissions = per_actor_permissions(actors, permissions)
     root = f"{PREFIX}/{check_id(run_id, 'run id') if run_id else '*'}"
     rules, subjects, policies = [], [], []
     for role, perms in permissions.items():
@@ -189,7 +217,8 @@ def router_tls(certs: str | Path, *, cert: str = "router.pem", key: str = "route
 
 def secure_router_config(certs: str | Path, *, run_id: str | None = None,
                          listen: Sequence[str] = ("tls/127.0.0.1:7447",),
-                         permissions: Mapping[str, Mapping[str, Sequence[str]]] = ROLE_PERMISSIONS) -> dict:
+                         permissions: Mapping[str, Mapping[str, Sequence[str]]] = ROLE_PERMISSIONS,
+                         actors: int = 0) -> dict:
     """The whole router config (a dict; JSON is valid JSON5): TLS-only listen
     endpoints, mTLS, access control, no scouting."""
     listen = [listen] if isinstance(listen, str) else list(listen)
@@ -203,7 +232,7 @@ def secure_router_config(certs: str | Path, *, run_id: str | None = None,
         # no discovery at all: gossip would advertise locators that bypass the router's ACL
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
         "transport": {"link": {"tls": router_tls(certs)}},
-        "access_control": access_control(run_id, permissions),
+        "access_control": access_control(run_id, permissions, actors),
     }
 
 
@@ -225,19 +254,22 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--router-host", action="append", default=None,
                    help="IP or DNS name services use to reach the router (repeatable; default 127.0.0.1, localhost)")
     c.add_argument("--days", type=int, default=365)
+    c.add_argument("--actors", type=int, default=0,
+                   help="also one certificate per actor id (CN actor-<i>): each actor may publish only as itself")
     r = sub.add_parser("router-config", help="write a router JSON5 with TLS, mTLS and per-role access control")
     r.add_argument("--certs", required=True, help="directory with ca.pem, router.pem, router.key")
     r.add_argument("--out", required=True, help="JSON5 file to write")
     r.add_argument("--run-id", default=None, help="restrict the rules to sage/<run-id>/ (default: any run)")
     r.add_argument("--listen", action="append", default=None, help="tls/ endpoint (default tls/127.0.0.1:7447)")
+    r.add_argument("--actors", type=int, default=0, help="per-actor identities actor-0 .. actor-<N-1> (see certs)")
     args = p.parse_args(argv)
     if args.cmd == "certs":
         files = make_test_certs(args.out, [x for x in args.roles.split(",") if x],
-                                args.router_host or ("127.0.0.1", "localhost"), args.days)
+                                args.router_host or ("127.0.0.1", "localhost"), args.days, args.actors)
         print(f"wrote {len(files)} files to {args.out}: " + ", ".join(sorted(p.name for p in files.values())))
     else:
         out = write_router_config(args.out, args.certs, run_id=args.run_id,
-                                  listen=args.listen or ["tls/127.0.0.1:7447"])
+                                  listen=args.listen or ["tls/127.0.0.1:7447"], actors=args.actors)
         print(f"wrote {out}")
     return 0
 

@@ -15,6 +15,7 @@ from common.audit.figures import colortrace, draw_trace
 from common.audit.leaf_stats import audit_markdown, leaf_audit
 from common.audit.params import BadPolicyParams, feature_names, feature_units_of, load_params_file, split_carriers
 from common.audit.recording import Recording
+from common.audit.safe_npz import load_npz
 from common.checkpoint import list_checkpoints
 from common.rundir import RunDir
 from sage.errors import (UsageError, load_error, nonneg_int, output_dir, output_file, positive_int,
@@ -117,10 +118,10 @@ def load_recording(path: str) -> Recording:
 
 def leaf_visits(log_path: str, carrier: int, n_leaves: int) -> np.ndarray:
     """Per-leaf visit counts of one carrier from a recording (or any .npz with a 'leaf' [S, N] array)."""
-    with np.load(log_path, allow_pickle=False) as data:
-        if "leaf" not in data.files:
-            raise ValueError(f"{log_path}: no 'leaf' array; pass a recording from `sage eval --record`")
-        leaf = np.asarray(data["leaf"])
+    data = load_npz(log_path, _DEFAULTS.max_npz_bytes)   # npy headers checked before allocating
+    if "leaf" not in data:
+        raise ValueError(f"{log_path}: no 'leaf' array; pass a recording from `sage eval --record`")
+    leaf = np.asarray(data["leaf"])
     if leaf.ndim != 2 or not 0 <= carrier < leaf.shape[1]:
         raise ValueError(f"{log_path}: leaf array {leaf.shape} has no carrier {carrier}")
     if leaf.size and (leaf.min() < 0 or leaf.max() >= n_leaves):
@@ -190,6 +191,9 @@ def _trace(args: argparse.Namespace) -> int:
     return 0
 
 
+AUDIT_FILES = ("leaf_audit.json", "leaf_audit.md", "colortrace.png")   # what run_audit writes
+
+
 def run_audit(recording, out_dir: str | Path, cfg: AuditConfig = AuditConfig(), episode: int | None = None) -> dict:
     """Table leaf_interpretability (JSON + Markdown) and Fig. colortrace for one recording."""
     out = Path(out_dir)
@@ -209,7 +213,7 @@ def _audit(args: argparse.Namespace) -> int:
     rec = load_recording(args.recording)
     if args.episode is not None and args.episode not in set(np.unique(rec.episode).tolist()):
         raise UsageError(f"--episode {args.episode}: not in the recording ({rec.n_episodes} episode(s))")
-    output_dir(args.out, "--out")
+    output_dir(args.out, "--out", files=AUDIT_FILES)
     result = run_audit(rec, args.out, cfg, args.episode)
     print(audit_markdown(result))
     print(f"wrote {args.out}/leaf_audit.json, leaf_audit.md, colortrace.png")
@@ -219,7 +223,7 @@ def _audit(args: argparse.Namespace) -> int:
 def _export_bundle(args: argparse.Namespace) -> int:
     with user_input(args.policy):
         params = load_policy(args.policy)
-    output_dir(args.out, "out")
+    output_dir(args.out, "out", files=("trees.json", "bundle_runtime.py", "README.md"))
     out = export_bundle(params, args.out, meta={"source": str(args.policy)})
     print(f"wrote bundle to {out}: {', '.join(sorted(p.name for p in out.iterdir()))}")
     return 0

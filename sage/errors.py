@@ -126,6 +126,8 @@ def output_file(path: str | Path, flag: str, figure: bool = False) -> Path:
         suffix = p.suffix.lower().lstrip(".")
         if suffix and suffix not in formats:
             raise UsageError(f"{flag} {p}: unknown figure format {suffix!r}; use one of {', '.join(sorted(formats))}")
+    if p.is_symlink():   # writing would overwrite whatever the link points to
+        raise UsageError(f"{flag} {p} is a symbolic link; give a plain file name (remove the link first)")
     if p.is_dir():
         raise UsageError(f"{flag} {p} is a directory; give a file name")
     for parent in p.parents:
@@ -138,11 +140,16 @@ def output_file(path: str | Path, flag: str, figure: bool = False) -> Path:
     return p
 
 
-def output_dir(path: str | Path, flag: str) -> Path:
-    """A directory the command will write into (created); a ``UsageError`` if it is a file."""
+def output_dir(path: str | Path, flag: str, files: tuple[str, ...] = ()) -> Path:
+    """A directory the command will write into (created); a ``UsageError`` if it is a
+    file, or if one of the ``files`` it will write there is a symbolic link (writing
+    would overwrite the link's target)."""
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise UsageError(f"{flag} {p} exists and is not a directory")
+    links = [name for name in files if (p / name).is_symlink()]
+    if links:
+        raise UsageError(f"{flag} {p}: {', '.join(links)} is a symbolic link; remove it or choose another directory")
     with user_input(f"{flag} {p}"):
         p.mkdir(parents=True, exist_ok=True)
     return p

@@ -7,7 +7,7 @@ import pickle
 import zipfile
 from pathlib import Path
 
-from common.checkpoint import list_checkpoints, load_checkpoint, load_latest
+from common.checkpoint import CheckpointError, list_checkpoints, load_checkpoint, load_latest
 from common.policy.tree_torch import policy_params_from_checkpoint
 from common.rundir import RunDir, read_jsonl
 from sage.errors import load_error, one_line
@@ -55,7 +55,11 @@ def load_run(path: str | Path) -> tuple[TrainConfig, dict, int]:
             cfg = read_config(run.config)
         except (ValueError, TypeError) as exc:
             raise ValueError(f"{run.config}: not a valid run config ({one_line(exc)})") from exc
-        ck = load_latest(run.checkpoints)
+        try:
+            ck = load_latest(run.checkpoints)
+        except CheckpointError as exc:
+            raise ValueError(f"{p}: no loadable checkpoint under checkpoints/ ({len(exc.failures)} there, "
+                             f"none loads; newest {exc.failures[0]})") from None
         if ck is None:
             found = len(list_checkpoints(run.checkpoints))
             raise FileNotFoundError(f"{p}: no loadable checkpoint under checkpoints/"

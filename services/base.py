@@ -4,6 +4,7 @@ and the process entry-point plumbing (config file, signals, Zenoh session)."""
 from __future__ import annotations
 
 import argparse
+import ctypes
 import logging
 import os
 import signal
@@ -14,7 +15,9 @@ from collections import defaultdict, deque
 from prometheus_client import CollectorRegistry
 
 from common import keys, wire
+from common.checkpoint import CheckpointError
 from common.metrics_prom import SageMetrics, serve_metrics
+from common.status import EXIT_FATAL
 from common.transport import Bus
 from services.config import TrainConfig
 
@@ -40,6 +43,8 @@ class Service:
         self.rejected: dict[str, int] = defaultdict(int)  # reason -> count (also in Prometheus)
         self.state = "starting"
         self.log = logging.getLogger(f"sage.{self.role}.{self.member_id}")
+        self._max_message_bytes = cfg.message_bytes_bound()
+        self._big_freed = False
 
     # ------------------------------------------------------------- messages
     def encode(self, kind: str, body: dict) -> bytes:
@@ -50,11 +55,15 @@ class Service:
     def send(self, key: str, kind: str, body: dict) -> None:
         self.bus.publish(key, self.encode(kind, body))
 
-    def decode(self, payload: bytes, expect) -> wire.Message | None:
-        """Decode or count-and-log the rejection; never raises."""
+    def decode(self, payload: bytes, expect, bounds: dict[str, int] | None = None) -> wire.Message | None:
+        """Decode or count-and-log the rejection; never raises. ``bounds``:
+        ``wire.decode``'s per-run caps on shape symbols."""
         unexpected = None
+        if len(payload) >= _TRIM_AFTER_BYTES:
+            self._big_freed = True   # its buffers are released at the next status tick (release_memory)
         try:
-            msg = wire.decode(payload, run_id=self.cfg.run_id, expect=expect)
+            msg = wire.decode(payload, run_id=self.cfg.run_id, expect=expect, bounds=bounds,
+                              max_bytes=self._max_message_bytes)
         except wire.WireError as exc:
             reason, detail = exc.reason, exc.detail
         except Exception as exc:  # noqa: BLE001 - defence in depth: no message may kill the loop
@@ -80,6 +89,9 @@ class Service:
         if not force and now - self._last_status < self.cfg.status_period_s:
             return
         self._last_status = now
+        if self._big_freed:
+            self._big_freed = False
+            release_memory()
         body = {"role": self.role, "id": self.member_id, "state": self.state, "pid": os.getpid(),
                 "uptime_s": now - self._t0, "version": -1, "env_steps": 0, "env_steps_per_s": 0.0,
                 "updates": 0, "success_rate": None, "shield_p99_s": None, "message": message,
@@ -100,6 +112,26 @@ class Service:
                 self.stop.set()
 
         self.bus.subscribe(keys.control(self.cfg.run_id), on_control)
+
+
+_TRIM_AFTER_BYTES = 1 << 20   # a message this large marks heap memory to hand back (release_memory)
+
+
+def release_memory() -> None:
+    """Hand freed heap memory back to the OS (glibc ``malloc_trim``): large message
+    buffers freed by Python stay in the process's heap otherwise, and its RSS keeps
+    the peak of the largest messages ever received. A no-op off glibc."""
+    global _malloc_trim
+    if _malloc_trim is None:
+        try:
+            _malloc_trim = ctypes.CDLL("libc.so.6").malloc_trim
+        except (OSError, AttributeError):
+            _malloc_trim = False
+    if _malloc_trim:
+        _malloc_trim(0)
+
+
+_malloc_trim = None
 
 
 class RateMeter:
@@ -164,10 +196,17 @@ def run_entry(role: str, make_service, argv=None) -> int:
         # A peer with gossip off that only dials a router does not get its
         # partners' publications routed to it; as a client it does.
         mode = "client"
-    bus = Bus.from_transport(cfg.transport, role=role, mode=mode)   # TLS identity of this role, if configured
+    # TLS identity of this role, if configured; Zenoh refuses messages past the run's bound
+    # (an actor uses its own certificate, actor-<id>, where the run has per-actor ones)
+    bus = Bus.from_transport(cfg.transport, role=role, mode=mode, max_message_bytes=cfg.message_bytes_bound(),
+                             member=member if role == "actor" else None)
     try:
         service = make_service(cfg, bus, member, registry, stop)
-        return int(service.run() or 0)
+        try:
+            return int(service.run() or 0)
+        except CheckpointError as exc:   # restarting cannot fix it: one line, and the run stops
+            log.error("%s", exc)
+            return EXIT_FATAL
     finally:
         bus.close()
         if server is not None:

@@ -48,6 +48,10 @@ class TransportConfig:
     tls_cert: str = ""           # this process's certificate, e.g. "certs/{role}.pem"
     tls_key: str = ""            # its private key, e.g. "certs/{role}.key"
     tls_verify_name: bool = True  # the router's certificate must name the host in the endpoint
+    # Largest message a Zenoh link of this run accepts (transport/link/rx/max_message_size,
+    # on every session and the run's router) and services decode; 0 = the run's own bound
+    # (TrainConfig.message_bytes_bound: its largest chunk, from T, K and M)
+    max_message_bytes: int = bounded(0, ge=0, le=2**31 - 1)
 
     def validate(self, prefix: str = "transport.") -> None:
         check_fields(self, prefix)
@@ -78,6 +82,10 @@ class ShieldConfig:
     # Queries waiting for a batch, at most (one per actor per step is the normal load;
     # beyond this a flood is answered "overloaded" at once and counted, memory stays bounded)
     max_queue: int = bounded(1024, ge=1, le=65536)
+    # Decoded queries one sender may have waiting (a pipelined actor has 2 out per
+    # step); beyond it that sender's query is answered "overloaded" and counted, so
+    # one flooding sender cannot take the others' turns (service is round-robin)
+    max_pending_per_sender: int = bounded(4, ge=1, le=1024)
 
     def validate(self, prefix: str = "shield.") -> None:
         check_fields(self, prefix)
@@ -96,6 +104,10 @@ class ActorConfig:
     # (common/shield/prune.py: exact, a dropped row can never be active or violated);
     # most wall rows are far from binding, and the rows are most of a query's bytes.
     prune_rows: bool = True
+    # Parameter fencing (services/actor/service.py _fence): a params message may be at
+    # most this many versions above the newest version the learner's heartbeats vouch
+    # for (one update = one version; heartbeats come every status_period_s)
+    max_version_step: int = bounded(64, ge=1, le=10**6)
     unhealthy_after_s: float = bounded(10.0, gt=0.0, le=3600.0)   # no shield answer this long -> "unhealthy"
     exit_on_unhealthy: bool = False    # supervised mode: exit(3) so the supervisor sees it
     params_wait_s: float = bounded(60.0, gt=0.0, le=86400.0)    # max wait for the first parameters
@@ -152,6 +164,10 @@ class TrainConfig:
                            help="budget in learner updates (unlimited when only --minutes is given)")
     minutes: float | None = bounded(None, gt=0.0, le=525_600.0, help="wall-clock budget (whichever first)")
     max_lag: int = bounded(1, ge=0, le=1000, help="accept chunks from versions >= current - max_lag")
+    # A chunk whose sequence number is more than this many ahead of its actor's
+    # last one is refused ("seq_jump") rather than counting the gap as lost: a
+    # learner down for minutes misses far fewer (actors pace on its parameters)
+    max_seq_gap: int = bounded(4096, ge=1, le=2**31 - 1)
     # bound of the learner's chunk queue and pending set (drops counted)
     learner_queue_chunks: int = bounded(64, ge=1, le=4096)
     seed: int = bounded(0, ge=0, le=2**31 - 1, help="run seed (envs, trees, layouts)")
@@ -197,6 +213,19 @@ class TrainConfig:
             self.algo = from_mapping(AlgoConfig, {**self.algo, "seed": self.seed}, "algo.")
 
     # -------------------------------------------------------------- helpers
+    def message_bytes_bound(self) -> int:
+        """The largest message this run's services accept: ``transport.max_message_bytes``,
+        or (0) a bound on its own largest message, a trajectory chunk of its T, K and M
+        (``wire.traj_bytes_bound``; at least 8 MiB for parameters and everything else),
+        never above ``wire.MAX_MESSAGE_BYTES``."""
+        from common import wire
+        from common.env.observations import OBS_DIM, STATE_DIM
+
+        if self.transport.max_message_bytes > 0:
+            return min(int(self.transport.max_message_bytes), wire.MAX_MESSAGE_BYTES)
+        chunk = wire.traj_bytes_bound(self.chunk_len, self.envs_per_actor, self.env.max_rows, OBS_DIM, STATE_DIM)
+        return min(max(chunk, 8 * 1024 * 1024), wire.MAX_MESSAGE_BYTES)
+
     def validate(self) -> "TrainConfig":
         """Each section's own checks (types, finiteness, ranges: ``check_fields``),
         then the rules that tie fields of different sections together."""

@@ -23,6 +23,7 @@ from typing import Sequence
 
 from prometheus_client import CollectorRegistry
 
+from common.checkpoint import CheckpointError
 from common.metrics_prom import serve_metrics
 from common.status import LiveLine, StatusBoard
 from common.transport import Bus
@@ -164,6 +165,8 @@ def run_inprocess(cfg: TrainConfig, *, progress: bool = True, method=None, envs=
     failed = group.failure()
     if failed:
         name, exc = failed
+        if isinstance(exc, CheckpointError):   # a fault restarting cannot fix: one line, non-zero exit
+            raise SystemExit(f"{name}: {exc}")
         raise RuntimeError(f"service {name} failed: {exc!r}") from exc
     result = learner.summary()
     result["actor_codes"] = {k: v for k, v in group.codes.items() if k.startswith("actor/")}

@@ -92,10 +92,14 @@ RAW = ("raw proposal", lambda b: (b["a_prop"], np.zeros(len(b["a_prop"]), np.int
 MAX_ITER = ("status 2", lambda b: (fake_solve(b["a_prop"], SafetyRows.of(b)).a_exec, np.full(len(b["a_prop"]), 2)))
 CLAIMS_INFEASIBLE = ("raw, claimed infeasible",
                      lambda b: (np.clip(b["a_prop"], -1, 1), np.ones(len(b["a_prop"]), np.int32)))
+# a plausible forgery: every row met, in the box, status optimal, but not the projection
+# (the fake env's one row is a_0 >= 0.5: "all zeros" moved onto it)
+SAFE_NOT_QP = ("safe point, claimed optimal",
+               lambda b: (np.eye(len(b["a_prop"][0]))[[0] * len(b["a_prop"])] * 0.5, np.zeros(len(b["a_prop"]), np.int32)))
 
 
 @PIPELINED
-@pytest.mark.parametrize("forger", [RAW, MAX_ITER, CLAIMS_INFEASIBLE], ids=lambda f: f[0])
+@pytest.mark.parametrize("forger", [RAW, MAX_ITER, CLAIMS_INFEASIBLE, SAFE_NOT_QP], ids=lambda f: f[0])
 def test_forged_shield_alone_gets_nothing_executed(tmp_path, bus, forger, pipelined):
     cfg = make_cfg(tmp_path, actor=ActorConfig(shield_timeout_s=0.1, unhealthy_after_s=30))
     stop = threading.Event()
@@ -110,7 +114,7 @@ def test_forged_shield_alone_gets_nothing_executed(tmp_path, bus, forger, pipeli
     assert _executed(env) == []                    # fail closed: nothing ran
     refused = sum(actor.answers_refused.values())
     metric = sum(sample(reg, "sage_actor_shield_answers_rejected_total", role="actor", actor_id="0", reason=r)
-                 for r in ("rows", "status", "infeasible_claim"))
+                 for r in ("rows", "status", "infeasible_claim", "kkt"))
     assert metric == refused >= 5
 
 
@@ -280,3 +284,51 @@ def test_learner_restart_never_reuses_a_version_nor_double_logs_an_update(tmp_pa
     assert [r["update"] for r in discarded] == [3, 4] and all(r["resumed_from"] == 2 for r in discarded)
     csv_lines = (run_dir / "metrics.csv").read_text().splitlines()
     assert len(csv_lines) == 1 + 6
+
+
+def _live_run(tmp_path, bus, **kw):
+    """A learner (fake method), a shield (fake QP) and one actor, running."""
+    cfg = make_cfg(tmp_path, updates=10**6, actors=1, **kw)
+    stop = threading.Event()
+    method = FakeMethod()
+    learner = LearnerService(cfg, bus, 0, stop=stop, method=method)
+    shield = ShieldService(cfg, bus, stop=stop, solve=fake_solve)
+    for svc in (learner, shield):
+        threading.Thread(target=svc.run, daemon=True).start()
+    env = FakeBatchEnv(2)
+    actor, th = _started_actor(cfg, bus, stop, env)
+    return cfg, stop, learner, actor, th, method
+
+
+def _forged_params(cfg, learner, method, version):
+    """The live learner's identity, incarnation and trees, with another version."""
+    body = {"version": version, "incarnation": learner.incarnation, "method": cfg.method,
+            "params": method.policy_params(), "settings": {"kappa": 1.0}}
+    return wire.encode("params", body, run_id=cfg.run_id, sender="learner/0", seq=10**6)
+
+
+def test_a_forged_version_jump_is_fenced_and_actors_keep_following_the_learner(tmp_path, bus):
+    """Issue 32, defect 3: version 10**12 with the live learner's identity froze training."""
+    cfg, stop, learner, actor, th, method = _live_run(tmp_path, bus)
+    wait_for(lambda: actor.params is not None and learner.version >= 2
+             and getattr(actor, "_vouched", 0) is not None, timeout=30)
+    bus.publish(keys.params(cfg.run_id), _forged_params(cfg, learner, method, 10**12))
+    v = learner.version
+    wait_for(lambda: v + 2 <= actor.params["version"] < 10**12, timeout=20)   # still following the real learner
+    assert actor.params_fenced == 1
+    assert actor.params["version"] < 10**12 and actor.params["incarnation"] == learner.incarnation
+    assert actor.status_fields()["extra"]["params_fenced"] == 1.0
+    stop.set()
+    th.join(5)
+
+
+def test_a_forged_version_inside_the_step_gives_way_at_the_next_heartbeat(tmp_path, bus):
+    cfg, stop, learner, actor, th, method = _live_run(tmp_path, bus, actor=ActorConfig(max_version_step=1000))
+    wait_for(lambda: actor.params is not None and actor._vouched is not None, timeout=30)
+    forged = learner.version + 900                # inside the bound: adopted for now ...
+    bus.publish(keys.params(cfg.run_id), _forged_params(cfg, learner, method, forged))
+    wait_for(lambda: actor.params["version"] == forged)
+    wait_for(lambda: actor.params["version"] < forged, timeout=30)   # ... and dropped once a heartbeat disagrees
+    assert learner.version < forged and actor.params_fenced == 0
+    stop.set()
+    th.join(5)

@@ -235,10 +235,10 @@ def test_learner_counts_rejected_and_stale_chunks_and_keeps_running(tmp_path, bu
     # learner never published) or with a forged actor id are dropped and counted, not used
     learner.version = 5
 
-    def chunk(seq, version, versions=None, incarnation=None, actor_id=0, sender="actor/0"):
+    def chunk(seq, version, versions=None, incarnation=None, actor_id=0, sender="actor/0", t=None):
         body = {"incarnation": incarnation or learner.incarnation, "version": version, "actor_id": actor_id,
                 "version_t": np.asarray(versions if versions is not None else [version], np.int64)}
-        return wire.Message("traj", cfg.run_id, sender, seq, 0.0, body)
+        return wire.Message("traj", cfg.run_id, sender, seq, float(seq if t is None else t), body)
 
     learner._admit(chunk(0, 5, incarnation="someone-else"))
     learner._admit(chunk(1, 4))
@@ -251,7 +251,7 @@ def test_learner_counts_rejected_and_stale_chunks_and_keeps_running(tmp_path, bu
     assert learner.counts["lost"] == 0
     learner._admit(chunk(6, 5))                      # actor/0's chunks 4 and 5 never arrived
     assert learner.counts["lost"] == 2 and len(learner.pending) == 1
-    learner._admit(chunk(2, 5))                      # a restarted actor process starts over at 0
+    learner._admit(chunk(2, 5, t=100.0))             # a restarted actor process starts over at 0 (sent later)
     assert learner.counts["actor_restarts"] == 1 and learner.counts["lost"] == 4
     assert th.is_alive()
     stop.set()
@@ -334,3 +334,46 @@ def test_episode_summary_gives_the_papers_per_update_safety_figures():
     assert out["col_per_1k"] == pytest.approx(10.0)   # 3 collision steps in 300 steps
     assert out["drop_rate"] == 0.5
     assert _episode_summary([]) == {"episodes": 0}
+
+
+def test_replayed_and_far_future_chunks_never_inflate_lost(tmp_path):
+    """Issue 32, defect 4: one copy of a real chunk with seq 10**6 added 10**6 to
+    ``lost``; three replays added 9 lost chunks that never were."""
+    cfg = make_cfg(tmp_path, max_lag=10)
+    learner = LearnerService(cfg, None, 0, CollectorRegistry(), threading.Event(), method=FakeMethod())
+    learner.version = 5
+
+    def chunk(seq, t, sender="actor/0"):
+        body = {"incarnation": learner.incarnation, "version": 5, "actor_id": int(sender[-1]),
+                "version_t": np.asarray([5], np.int64)}
+        return wire.Message("traj", cfg.run_id, sender, seq, float(t), body)
+
+    for s in range(4):
+        learner._admit(chunk(s, 10.0 + s))
+    assert len(learner.pending) == 4 and learner.counts["lost"] == 0
+    learner._admit(chunk(10**6, 20.0))                 # a copy with a far-future seq
+    for s in (1, 2, 3):
+        learner._admit(chunk(s, 10.0 + s))             # byte-for-byte replays
+    learner._admit(chunk(0, 5.0))                      # an old chunk, not seen here before
+    assert learner.counts["lost"] == 0 and learner.counts["actor_restarts"] == 0
+    assert learner.counts["seq_jump"] == 1 and learner.counts["duplicate"] == 4
+    assert len(learner.pending) == 4                   # none of them is trained on
+    learner._admit(chunk(4, 14.0))                     # the real actor goes on, nothing lost
+    learner._admit(chunk(7, 17.0))                     # a real gap: 5 and 6 never arrived
+    assert learner.counts["lost"] == 2 and learner.last_seq["actor/0"] == 7
+    learner._admit(chunk(0, 30.0))                     # a real restart: later, seq starts over
+    assert learner.counts["actor_restarts"] == 1 and learner.counts["lost"] == 2
+    learner._admit(chunk(cfg.max_seq_gap + 1, 31.0))   # the largest gap still counted
+    assert learner.counts["lost"] == 2 + cfg.max_seq_gap
+
+
+def test_a_chunk_must_arrive_on_its_own_actors_key(tmp_path):
+    """The key a chunk came on names its actor: under per-actor TLS certificates only
+    actor i may publish traj/<i>, so a chunk there claiming another id is refused."""
+    cfg = make_cfg(tmp_path)
+    learner = LearnerService(cfg, None, 0, CollectorRegistry(), threading.Event(), method=FakeMethod())
+    body = {"incarnation": learner.incarnation, "version": 0, "actor_id": 1, "version_t": np.asarray([0], np.int64)}
+    learner._admit(wire.Message("traj", cfg.run_id, "actor/1", 0, 1.0, body), key_id="0")
+    assert learner.counts["actor_id"] == 1 and not learner.pending
+    learner._admit(wire.Message("traj", cfg.run_id, "actor/1", 0, 1.0, body), key_id="1")
+    assert len(learner.pending) == 1

@@ -383,3 +383,21 @@ def test_sage_train_supervised_runs_the_method_to_its_update_budget(tmp_path, me
     else:
         assert all("happo_factor_std" in r and r["kappa"] == 0 for r in rows)
     assert json.loads((run / "config.json").read_text())["method"] == method
+
+
+def test_a_fatal_exit_stops_the_run_at_once_with_the_services_line(tmp_path):
+    """Issue 32, defect 5: a learner whose checkpoints all fail exits EXIT_FATAL; restarting
+    cannot fix that, so the run stops with its one line instead of five restarts."""
+    from common.status import EXIT_FATAL
+
+    out = io.StringIO()
+    learner = py("learner", """
+        import sys
+        print("ERROR checkpoints: none of its 2 checkpoint(s) loads; refusing to start over", file=sys.stderr)
+        raise SystemExit(4)
+        """, ends_run=True)
+    sup = Supervisor([learner, py("actor-0", SLEEPER)], tmp_path / "run", fast_cfg(), out=out)
+    assert sup.run(install_signals=False) == EXIT_FATAL
+    run = tmp_path / "run"
+    assert events(run, "restart") == [] and len(events(run, "fatal", "learner")) == 1
+    assert "learner stopped the run: ERROR checkpoints: none of its 2 checkpoint(s) loads" in out.getvalue()

@@ -241,8 +241,9 @@ def test_actor_cannot_answer_as_the_shield(router, open_bus):
 def test_legitimate_role_traffic_flows(router, open_bus):
     learner, actor, shield, supervisor = (open_bus("learner"), open_bus("actor"), open_bus("shield"),
                                           open_bus("supervisor"))
-    a_params, a_control, l_traj, l_control, s_control, sup_status = (Inbox() for _ in range(6))
+    a_params, a_control, l_traj, l_control, s_control, sup_status, a_heartbeat = (Inbox() for _ in range(7))
     actor.subscribe(keys.params(RUN), a_params)
+    actor.subscribe(keys.status(RUN, "learner", 0), a_heartbeat)   # parameter fencing reads it
     actor.subscribe(keys.control(RUN), a_control)
     learner.subscribe(keys.traj_all(RUN), l_traj)
     learner.subscribe(keys.control(RUN), l_control)
@@ -259,8 +260,8 @@ def test_legitimate_role_traffic_flows(router, open_bus):
             bus.publish(keys.status(RUN, role, 0), role.encode())
         reply = actor.request(keys.shield(RUN), b"rows", timeout=5.0)
         assert reply is not None and reply.ok == b"action" and queries == [b"rows"]
-        wait_for(lambda: a_params.payloads() and l_traj.payloads() and len(sup_status.items) == 3, 5,
-                 "params, traj and three status messages")
+        wait_for(lambda: a_params.payloads() and l_traj.payloads() and len(sup_status.items) == 3
+                 and a_heartbeat.payloads(), 5, "params, traj, three status messages and the learner's at the actor")
         assert a_params.payloads() == [b"v1"]
         assert l_traj.items == [("traj/3", b"chunk")]
         assert sorted(sup_status.items) == [("status/actor/0", b"actor"), ("status/learner/0", b"learner"),
@@ -397,3 +398,54 @@ def test_supervised_run_over_tls_with_access_control_reaches_its_budget(pki, tmp
     router_argv = next(e["argv"] for e in map(__import__("json").loads, (run / "supervisor.jsonl").read_text().splitlines())
                        if e.get("event") == "start" and e.get("service") == "router")
     assert "--tls-certs" in router_argv and any(a.startswith("tls/127.0.0.1:") for a in router_argv)
+
+
+# ------------------------------------------------------------------- one identity per actor id (issue 32, defect 4)
+def test_per_actor_certificates_bind_an_actor_to_its_own_id(tmp_path):
+    """With per-actor certificates (CN actor-<i>) an actor certificate publishes chunks,
+    status and traces only under its own id; the shared actor identity publishes none."""
+    certs = tmp_path / "certs"
+    dtls.make_test_certs(certs, actors=2)
+    port = free_tcp_port()
+    endpoint = f"tls/127.0.0.1:{port}"
+    proc = subprocess.Popen([sys.executable, "-m", "deploy.router", "--tls-certs", str(certs), "--run-id", RUN,
+                             "--listen", endpoint, "--actors", "2"],
+                            cwd=ROOT, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+    buses: list[Bus] = []
+    try:
+        assert "listening" in proc.stderr.readline()
+        t = TransportConfig(mode="client", connect=[endpoint], tls_root_ca=str(certs / "ca.pem"),
+                            tls_cert=str(certs / "{role}.pem"), tls_key=str(certs / "{role}.key"))
+        learner = Bus.from_transport(t, role="learner")
+        actor0 = Bus.from_transport(t, role="actor", member=0)   # picks actor-0.pem
+        shared = Bus.open(connect=[endpoint], mode="client", role="actor",
+                          tls=TlsFiles(str(certs / "ca.pem"), str(certs / "{role}.pem"), str(certs / "{role}.key")))
+        buses += [learner, actor0, shared]
+        inbox = Inbox()
+        learner.subscribe(keys.traj_all(RUN), inbox)
+        time.sleep(0.3)
+        actor0.publish(keys.traj(RUN, 1), b"as-actor-1")       # forged id: denied by the router
+        shared.publish(keys.traj(RUN, 0), b"shared-identity")   # the shared actor cert: denied too
+        time.sleep(0.3)
+        actor0.publish(keys.traj(RUN, 0), b"own")               # positive control, same path
+        wait_for(lambda: inbox.payloads(), 5, "actor 0's own chunk")
+        time.sleep(0.3)
+        assert inbox.items == [("traj/0", b"own")]
+    finally:
+        for b in buses:
+            b.close()
+        proc.terminate()
+        try:
+            proc.wait(15)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+
+
+def test_per_actor_permissions_only_narrow_what_an_actor_publishes():
+    perms = dtls.per_actor_permissions(2)
+    assert "actor" not in perms and perms["actor-1"]["put"] == ("traj/1", "status/actor/1", "trace/1")
+    assert perms["actor-1"]["subscribe"] == dtls.ROLE_PERMISSIONS["actor"]["subscribe"]
+    assert perms["actor-1"]["query"] == dtls.ROLE_PERMISSIONS["actor"]["query"]
+    acl = dtls.access_control(RUN, actors=2)
+    assert {s["id"] for s in acl["subjects"]} == {"learner", "shield", "supervisor", "cli", "actor-0", "actor-1"}

@@ -13,6 +13,7 @@ Contents:
 from __future__ import annotations
 
 import ast
+import hashlib
 import json
 import re
 from pathlib import Path
@@ -146,8 +147,6 @@ def export_bundle(params: dict, out_dir: str | Path, names: list[str] | None = N
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     doc = bundle_document(params, names, meta=meta)
-    with open(out / bundle_runtime.TREES_FILE, "w") as f:
-        json.dump(doc, f, indent=1, ensure_ascii=False)
     qp_dir = out / bundle_runtime.QP_PACKAGE
     qp_dir.mkdir(exist_ok=True)
     sources = qp_package_sources()
@@ -156,7 +155,14 @@ def export_bundle(params: dict, out_dir: str | Path, names: list[str] | None = N
             stale.unlink()
     for name, src in sources.items():
         _write_if_changed(qp_dir / name, src)
-    _write_if_changed(out / "bundle_runtime.py", Path(bundle_runtime.__file__).read_text())
+    runtime = Path(bundle_runtime.__file__).read_text()
+    _write_if_changed(out / bundle_runtime.RUNTIME_FILE, runtime)
+    # the exported python, byte for byte: Bundle.load refuses a bundle whose files differ
+    texts = {bundle_runtime.RUNTIME_FILE: runtime, **{f"{bundle_runtime.QP_PACKAGE}/{n}": src
+                                                     for n, src in sources.items()}}
+    doc["code_sha256"] = {rel: hashlib.sha256(text.encode()).hexdigest() for rel, text in sorted(texts.items())}
+    with open(out / bundle_runtime.TREES_FILE, "w") as f:
+        json.dump(doc, f, indent=1, ensure_ascii=False, allow_nan=False)
     t0 = doc["trees"][0]
     (out / "README.md").write_text(README.format(dirname=out.name, n_agents=doc["n_agents"],
                                                  obs_dim=len(doc["feature_names"]), depth=t0["depth"]))

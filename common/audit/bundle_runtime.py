@@ -25,8 +25,11 @@ command ``a_st``, the QP's active rows, status and correction norm.
 """
 from __future__ import annotations
 
+import hashlib
+import importlib
 import importlib.util
 import json
+import math
 import os
 import sys
 from dataclasses import dataclass
@@ -67,6 +70,56 @@ class BundleTree:
         return self.c_a + self.s_a * np.tanh(pre), leaf, nodes, sides  # Eq. (hard_tree_policy)
 
 
+RUNTIME_FILE = "bundle_runtime.py"
+MAX_TREES_JSON_BYTES = 64 * 1024 * 1024   # a depth-8 team is ~10 MB of JSON
+
+
+def code_files(directory: str) -> list[str]:
+    """The bundle's python files, relative paths: the runtime and the QP package."""
+    pkg = os.path.join(directory, QP_PACKAGE)
+    names = sorted(n for n in os.listdir(pkg) if n.endswith(".py")) if os.path.isdir(pkg) else []
+    return [RUNTIME_FILE] + [f"{QP_PACKAGE}/{n}" for n in names]
+
+
+def _sha256(path: str) -> str:
+    with open(path, "rb") as f:
+        return hashlib.sha256(f.read()).hexdigest()
+
+
+def _check_code(directory: str, doc: dict) -> None:
+    """Every python file of the bundle is the one exported, byte for byte
+    (``trees.json["code_sha256"]``): none missing, none added, none changed."""
+    want = doc.get("code_sha256")
+    if not isinstance(want, dict) or not want:
+        raise ValueError(f"{directory}: trees.json lists no code hashes (exported by an older SAGE?); re-export it")
+    have = code_files(directory)
+    if sorted(have) != sorted(want):
+        raise ValueError(f"{directory}: python files {sorted(set(have) ^ set(want))} differ from the exported set")
+    for rel in have:
+        if _sha256(os.path.join(directory, rel)) != want[rel]:
+            raise ValueError(f"{directory}: {rel} differs from the exported file (content hash mismatch)")
+
+
+def _finite_array(directory: str, what: str, value, ndim: int) -> np.ndarray:
+    try:
+        a = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{directory}: {what} is not a numeric array") from None
+    if a.ndim != ndim:
+        raise ValueError(f"{directory}: {what} has {a.ndim} dimensions, expected {ndim}")
+    if not np.isfinite(a).all():
+        raise ValueError(f"{directory}: {what} holds NaN or Inf")
+    return a
+
+
+def _project_qp():
+    """The exact CBF-QP of the SAGE installation this file belongs to, when it is
+    the project's own ``common.audit.bundle_runtime`` (None for a bundle's copy)."""
+    if __name__ != "common.audit.bundle_runtime":
+        return None
+    return importlib.import_module("common.shield.qp")
+
+
 def _load_qp(directory: str):
     """Import the bundle's own copy of the exact CBF-QP (package ``sage_qp``) under a private name."""
     pkg = os.path.abspath(os.path.join(directory, QP_PACKAGE))
@@ -97,23 +150,50 @@ class Bundle:
 
     @classmethod
     def load(cls, directory: str) -> "Bundle":
-        with open(os.path.join(directory, TREES_FILE)) as f:
-            doc = json.load(f)
-        if doc.get("format") != FORMAT:
-            raise ValueError(f"{directory}: unknown bundle format {doc.get('format')!r}, expected {FORMAT!r}")
-        trees = []
-        for t in doc["trees"]:
-            nodes = sorted(t["nodes"], key=lambda n: n["id"])
-            leaves = sorted(t["leaves"], key=lambda n: n["leaf"])
-            trees.append(BundleTree(
-                w=np.array([n["w"] for n in nodes], dtype=np.float64),
-                b=np.array([n["b"] for n in nodes], dtype=np.float64),
-                K=np.array([lf["K"] for lf in leaves], dtype=np.float64),
-                beta=np.array([lf["beta"] for lf in leaves], dtype=np.float64),
-                c_a=np.array(t["c_a"], dtype=np.float64),
-                s_a=np.array(t["s_a"], dtype=np.float64)))
+        """A bundle's trees, checked: every weight finite, shapes of one complete
+        tree per carrier, and its python files the exported ones (content hashes
+        in trees.json). Loaded by SAGE itself (``common.audit.bundle_runtime``),
+        the bundle's python is never imported: the project's own QP runs. Only
+        the bundle's own copy of this file, run standalone, imports its
+        ``sage_qp``, after the same hash check."""
+        path = os.path.join(directory, TREES_FILE)
+        if os.path.getsize(path) > MAX_TREES_JSON_BYTES:
+            raise ValueError(f"{path}: larger than {MAX_TREES_JSON_BYTES} bytes, not a bundle's trees")
+        with open(path) as f:
+            doc = json.load(f, parse_constant=lambda c: math.nan)   # NaN/Infinity literals: refused below
+        if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+            got = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
+            raise ValueError(f"{directory}: unknown bundle format {got!r}, expected {FORMAT!r}")
+        _check_code(directory, doc)
+        try:
+            trees = [cls._tree(directory, i, t) for i, t in enumerate(doc["trees"])]
+            names = [str(n) for n in doc["feature_names"]]
+        except (KeyError, TypeError, AttributeError) as exc:
+            raise ValueError(f"{directory}: trees.json is not a bundle's trees ({type(exc).__name__}: {exc})") from None
+        if not trees or any(t.w.shape[1] != len(names) or t.K.shape[1:] != trees[0].K.shape[1:] for t in trees):
+            raise ValueError(f"{directory}: trees and feature names disagree in size")
         meta = {k: v for k, v in doc.items() if k != "trees"}
-        return cls(trees, list(doc["feature_names"]), _load_qp(directory), meta)
+        qp = _project_qp() or _load_qp(directory)
+        return cls(trees, names, qp, meta)
+
+    @staticmethod
+    def _tree(directory: str, i: int, t: dict) -> BundleTree:
+        nodes = sorted(t["nodes"], key=lambda n: n["id"])
+        leaves = sorted(t["leaves"], key=lambda n: n["leaf"])
+        what = f"carrier {i}"
+        w = _finite_array(directory, f"{what} split vectors w", [n["w"] for n in nodes], 2)
+        b = _finite_array(directory, f"{what} thresholds b", [n["b"] for n in nodes], 1)
+        K = _finite_array(directory, f"{what} leaf gains K", [lf["K"] for lf in leaves], 3)
+        beta = _finite_array(directory, f"{what} leaf biases beta", [lf["beta"] for lf in leaves], 2)
+        c_a = _finite_array(directory, f"{what} c_a", t["c_a"], 1)
+        s_a = _finite_array(directory, f"{what} s_a", t["s_a"], 1)
+        n_leaves, act_dim = K.shape[0], K.shape[1]
+        depth = n_leaves.bit_length() - 1
+        if n_leaves < 2 or n_leaves != 2 ** depth or w.shape[0] != n_leaves - 1 or b.shape[0] != n_leaves - 1 \
+                or K.shape[2] != w.shape[1] or beta.shape != (n_leaves, act_dim) or c_a.shape != (act_dim,) \
+                or s_a.shape != (act_dim,):
+            raise ValueError(f"{directory}: {what} is not a complete tree (w {w.shape}, K {K.shape})")
+        return BundleTree(w=w, b=b, K=K, beta=beta, c_a=c_a, s_a=s_a)
 
     def nominal(self, obs: np.ndarray):
         """Stacked nominal command a_st [B, N*act_dim] and per-carrier routes."""

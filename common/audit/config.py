@@ -18,6 +18,10 @@ class AuditConfig:
     top_tuples: int = 12
     # Seed of the permutation null (the audit is otherwise deterministic).
     seed: int = 0
+    # Size budget of one .npz a user loads (recording, params): the arrays its npy
+    # headers declare, summed, checked before anything is allocated. A recording of
+    # 100 episodes x 600 steps at M = 34 rows is ~0.3 GB.
+    max_npz_bytes: int = 4 * 1024**3
 
     def __post_init__(self) -> None:
         if self.top_terms < 1:

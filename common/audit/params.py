@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from common.audit.config import AuditConfig
+from common.audit.safe_npz import load_npz
 from common.env.config import EnvConfig
 from common.env.observations import OBS_FEATURE_NAMES, feature_units
 
@@ -147,8 +149,7 @@ def load_params_file(path: str | Path) -> dict[str, np.ndarray]:
         raise FileNotFoundError(f"no such policy file: {path}")
     suffix = path.suffix.lower()
     if suffix == ".npz":
-        with np.load(path, allow_pickle=False) as data:
-            raw = {k: data[k] for k in data.files}
+        raw = load_npz(path, AuditConfig().max_npz_bytes)   # headers checked before allocating
         prefix = "params::"  # a decision-trace recording embeds the params it ran (recording.py)
         if any(k.startswith(prefix) for k in raw):
             raw = {k[len(prefix):]: v for k, v in raw.items() if k.startswith(prefix)}

@@ -17,7 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
+from common.audit.config import AuditConfig
 from common.audit.params import feature_names
+from common.audit.safe_npz import load_npz
 from common.evaluation.deployment import evaluate_policy
 
 RECORDING_VERSION = 1
@@ -85,20 +87,69 @@ class Recording:
         return path
 
     @classmethod
-    def load(cls, path: str | Path) -> "Recording":
+    def load(cls, path: str | Path, max_bytes: int = AuditConfig().max_npz_bytes) -> "Recording":
+        """A recording file, as data: its arrays within ``max_bytes`` (checked on
+        the npy headers before anything is allocated), then every array's shape,
+        dtype, finiteness and range checked (``check``); a ``ValueError`` naming
+        the file otherwise."""
         path = Path(path)
         if not path.exists():
             raise FileNotFoundError(f"no such recording: {path}")
-        with np.load(path, allow_pickle=False) as data:
-            missing = [n for n in cls._ARRAYS + ("meta_json",) if n not in data.files]
-            if missing:
-                raise ValueError(f"{path} is not a SAGE recording (missing {missing})")
-            kw = {n: data[n] for n in cls._ARRAYS}
-            params = {k[len(_PARAM_PREFIX):]: data[k] for k in data.files if k.startswith(_PARAM_PREFIX)}
-            meta = json.loads(str(data["meta_json"]))
-        if meta.get("recording_version") != RECORDING_VERSION:
-            raise ValueError(f"{path}: recording version {meta.get('recording_version')} != {RECORDING_VERSION}")
-        return cls(**kw, params=params, meta=meta)
+        data = load_npz(path, max_bytes)
+        missing = [n for n in cls._ARRAYS + ("meta_json",) if n not in data]
+        if missing:
+            raise ValueError(f"{path} is not a SAGE recording (missing {missing})")
+        kw = {n: data[n] for n in cls._ARRAYS}
+        params = {k[len(_PARAM_PREFIX):]: v for k, v in data.items() if k.startswith(_PARAM_PREFIX)}
+        meta = json.loads(str(data["meta_json"]))
+        if not isinstance(meta, dict) or meta.get("recording_version") != RECORDING_VERSION:
+            got = meta.get("recording_version") if isinstance(meta, dict) else None
+            raise ValueError(f"{path}: recording version {got} != {RECORDING_VERSION}")
+        try:
+            rec = cls(**kw, params=params, meta=meta)
+            rec.check()
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
+        return rec
+
+    def check(self) -> None:
+        """Shapes that agree (S steps, N carriers, depth D, M rows, d = 3N), integer
+        ids, finite floats, and leaves/nodes inside a depth-D tree."""
+        S = self.n_steps
+        if np.ndim(self.leaf) != 2 or np.ndim(self.nodes) != 3 or np.ndim(self.obs) != 3:
+            raise ValueError(f"leaf {np.shape(self.leaf)}, nodes {np.shape(self.nodes)}, obs {np.shape(self.obs)}: "
+                             "expected [S, N], [S, N, D], [S, N, obs_dim]")
+        N, D = self.leaf.shape[1], self.nodes.shape[2]
+        M = np.shape(self.active)[1] if np.ndim(self.active) == 2 else -1
+        d = 3 * N
+        want = {"episode": (S,), "t": (S,), "obs": (S, N, self.obs.shape[2]), "nodes": (S, N, D),
+                "sides": (S, N, D), "leaf": (S, N), "a_st": (S, d), "a_exec": (S, d), "active": (S, M),
+                "progress": (S,), "payload_pose": (S, 3), "C": (S, M, d), "c": (S, M), "row_mask": (S, M),
+                "fixed_mask": (S, d), "human_action": (S, d)}
+        for name, shape in want.items():
+            a = getattr(self, name)
+            if a.shape != shape:
+                raise ValueError(f"{name} has shape {a.shape}, expected {shape}")
+            kind = a.dtype.kind
+            if name in ("episode", "t", "nodes", "leaf") and kind not in "iu":
+                raise ValueError(f"{name} has dtype {a.dtype}, expected integers")
+            if name in ("sides", "active", "row_mask", "fixed_mask") and kind != "b":
+                raise ValueError(f"{name} has dtype {a.dtype}, expected bool")
+            if kind not in "iubf":
+                raise ValueError(f"{name} has dtype {a.dtype}, expected numbers")
+            if kind == "f" and not np.isfinite(a).all():
+                raise ValueError(f"{name} holds NaN or Inf")
+        if D < 1 or D > 16:
+            raise ValueError(f"tree depth {D} outside 1..16")
+        for name, hi in (("leaf", 2 ** D), ("nodes", 2 ** D - 1)):
+            a = getattr(self, name)
+            if a.size and (a.min() < 0 or a.max() >= hi):
+                raise ValueError(f"{name} ids outside 0..{hi - 1} (tree depth {D}): "
+                                 f"{int(a.min())}..{int(a.max())}")
+        for name in ("episode", "t"):
+            a = getattr(self, name)
+            if a.size and a.min() < 0:
+                raise ValueError(f"{name} holds negative values")
 
 
 def save(recording: Recording, path: str | Path) -> Path:

@@ -13,7 +13,15 @@ forged, stale or buggy shield is harmless even on an open network:
   genuinely infeasible: the actor re-solves just those problems locally with
   the same exact QP and refuses the answer if it finds a feasible point, or if
   the answer violates a row by more than the local minimum violation + ``tol``.
-  Infeasible row sets are rare, so the local solve costs little.
+  Infeasible row sets are rare, so the local solve costs little;
+* OPTIMAL answers are the projection, not merely a feasible point: the KKT
+  conditions of Eq. (qpshield) hold to ``tol``, a_exec - a_prop = C_A^T lambda
+  + box multipliers with lambda >= 0 on the rows and box faces active at
+  a_exec, and complementary slackness. The multipliers are the actor's own:
+  a small NNLS on the active rows (``kernels.diagnostics_batch``, the same
+  certificate the QP reports), independent of anything the shield sends. The
+  projection is strictly convex, so its KKT point is unique: a feasible but
+  wrong answer ("all zeros, optimal") is refused as ``kkt``.
 
 ``verify_answer`` returns ``None`` for an answer to execute, else the reason
 (one of ``REJECT_REASONS``) it was refused: the first failed check in the
@@ -26,11 +34,12 @@ from __future__ import annotations
 import numpy as np
 
 from common.safety_rows import SafetyRows
-from common.shield.kernels import STATUS_INFEASIBLE, STATUS_OPTIMAL
-from common.shield.qp import shield_actions
+from common.shield.kernels import STATUS_INFEASIBLE, STATUS_OPTIMAL, diagnostics_batch
+from common.shield.qp import QPConfig, shield_actions
 from common.shield.row_kernels import CHECK_ORDER, check_answer_kernel
 
-REJECT_REASONS = ("shape", "nonfinite", "box", "fixed_block", "status", "rows", "infeasible_claim")
+REJECT_REASONS = ("shape", "nonfinite", "box", "fixed_block", "status", "rows", "infeasible_claim", "kkt")
+_QP = QPConfig()
 
 
 def verify_answer(a_prop: np.ndarray, rows: SafetyRows, a_exec: np.ndarray, status: np.ndarray,
@@ -57,7 +66,29 @@ def verify_answer(a_prop: np.ndarray, rows: SafetyRows, a_exec: np.ndarray, stat
     for reason, bad in zip(CHECK_ORDER, failed):
         if bad:
             return reason
-    return _check_infeasible_claims(a_prop, rows, status, violation, tol, backend)
+    return (_check_infeasible_claims(a_prop, rows, status, violation, tol, backend)
+            or _check_optimality(a_prop, rows, a_exec, status, tol))
+
+
+def _check_optimality(a_prop, rows: SafetyRows, a_exec, status, tol) -> str | None:
+    """Answers claimed OPTIMAL: the KKT residual of Eq. (qpshield) at a_exec
+    (stationarity with NNLS multipliers on the active rows and box faces,
+    primal feasibility, complementarity) is at most ``tol``."""
+    optimal = np.flatnonzero(status == STATUS_OPTIMAL)
+    if optimal.size == 0:
+        return None
+    a = np.require(np.asarray(a_prop, np.float64)[optimal], np.float64, "CA")
+    x = np.require(np.asarray(a_exec, np.float64)[optimal], np.float64, "CA")
+    C = np.require(np.asarray(rows.C, np.float64)[optimal], np.float64, "CA")
+    c = np.require(np.asarray(rows.c, np.float64)[optimal], np.float64, "CA")
+    mask = np.require(np.broadcast_to(np.asarray(rows.row_mask, bool), np.shape(rows.c))[optimal], np.bool_, "CA")
+    fixed = np.require(np.broadcast_to(np.asarray(rows.fixed_mask, bool), np.shape(a_prop))[optimal], np.bool_, "CA")
+    n, M = C.shape[:2]
+    lo, hi = np.full(a.shape, -1.0), np.full(a.shape, 1.0)
+    kkt = np.empty(n)
+    diagnostics_batch(a, x, C, c, mask, fixed, lo, hi, np.full(n, STATUS_OPTIMAL, np.int64), _QP.slack_rho,
+                      _QP.active_tol, np.empty((n, M), np.bool_), np.empty(n), kkt, np.empty(n))
+    return "kkt" if not np.all(kkt <= tol) else None
 
 
 def _check_infeasible_claims(a_prop, rows: SafetyRows, status, violation, tol, backend) -> str | None:
@@ -96,4 +127,5 @@ def verify_answer_reference(a_prop: np.ndarray, rows: SafetyRows, a_exec: np.nda
     claimed = status == STATUS_INFEASIBLE
     if np.any(violation[~claimed] > tol):
         return "rows"
-    return _check_infeasible_claims(a_prop, rows, status, violation, tol, backend)
+    return (_check_infeasible_claims(a_prop, rows, status, violation, tol, backend)
+            or _check_optimality(a_prop, rows, a_exec, status, tol))

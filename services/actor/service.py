@@ -80,6 +80,8 @@ class ActorService(Service):
         self.answers_refused: dict[str, int] = defaultdict(int)   # reason -> shield answers not executed
         self.chunks_sent = 0
         self.params_refused = 0
+        self.params_fenced = 0      # of those: version jumps no learner heartbeat vouches for
+        self._vouched: int | None = None   # the learner's newest heartbeat version (None: none heard yet)
         self.chunks_discarded = 0   # partial chunks dropped on a learner restart (and their env steps)
         self.steps_discarded = 0
         self._chaos = (np.random.default_rng([cfg.seed, 2000 + self.actor_id, os.getpid()])
@@ -96,7 +98,11 @@ class ActorService(Service):
         if msg is None:
             return
         b = msg.body
-        refused = self._check_params(b)
+        with self._lock:
+            fenced = self._fence(b)
+        if fenced:
+            self.params_fenced += 1
+        refused = fenced or self._check_params(b)
         if refused:
             self.params_refused += 1
             self.m.params_rejected.labels(**self.labels).inc()
@@ -106,9 +112,48 @@ class ActorService(Service):
             return
         with self._lock:
             cur = self._pending or self.params
-            # a restarted learner (new incarnation) may resume at a lower version
-            if cur is None or b["incarnation"] != cur["incarnation"] or b["version"] > cur["version"]:
+            # a restarted learner (new incarnation) may resume at a lower version; a held
+            # version no heartbeat vouched for gives way to the learner's own (see _fence)
+            if cur is None or b["incarnation"] != cur["incarnation"] or b["version"] > cur["version"] \
+                    or self._unvouched_gives_way(cur, b):
                 self._pending = b
+
+    def _on_learner_status(self, _key: str, payload: bytes) -> None:
+        msg = self.decode(payload, "status")
+        if msg is not None and msg.body["role"] == "learner":
+            with self._lock:
+                self._vouched = int(msg.body["version"])
+
+    def _fence(self, b: dict) -> str | None:
+        """Parameter versions are fenced like Raft terms: they move forward in
+        steps the learner's heartbeats vouch for. A version is vouched once the
+        learner's newest heartbeat reports at least it. A message may be at most
+        ``actor.max_version_step`` above the newest vouched version (the
+        heartbeat's, or the held one's if vouched), in its incarnation or a new
+        one (a restarted learner resumes just above every published version);
+        a larger jump (a forged 10**12) is refused and counted. Before any
+        heartbeat, the held version is the reference (trust on first use)."""
+        cur = self._pending or self.params
+        heard = self._vouched
+        if cur is None and heard is None:
+            return None
+        ref = -1 if heard is None else heard
+        if cur is not None and (heard is None or cur["version"] <= heard):
+            ref = max(ref, int(cur["version"]))
+        step = self.cfg.actor.max_version_step
+        if b["version"] > ref + step:
+            return (f"version {b['version']} jumps more than {step} above {ref}, the newest the learner's "
+                    f"heartbeats vouch for")
+        return None
+
+    def _unvouched_gives_way(self, cur: dict, b: dict) -> bool:
+        """Same incarnation, lower version: taken only when the held version is
+        above what the learner's heartbeat reports and this one is not (a forged
+        version inside the step bound is dropped at the next heartbeat, and the
+        actors follow the real learner again)."""
+        heard = self._vouched
+        return heard is not None and b["incarnation"] == cur["incarnation"] \
+            and cur["version"] > heard >= b["version"]
 
     def _check_params(self, body: dict) -> str | None:
         """Why a parameter message cannot drive this actor's trees, or None: the
@@ -142,6 +187,7 @@ class ActorService(Service):
                 "extra": {"shield_failures": float(self.shield_failures), "chunks": float(self.chunks_sent),
                           "answers_refused": float(sum(self.answers_refused.values())),
                           "params_refused": float(self.params_refused),
+                          "params_fenced": float(self.params_fenced),
                           "chunks_discarded": float(self.chunks_discarded),
                           "steps_discarded": float(self.steps_discarded),
                           "K": float(self.cfg.envs_per_actor),
@@ -253,6 +299,7 @@ class ActorService(Service):
     def run(self) -> int:
         envs = self.envs if self.envs is not None else self._make_envs()
         self.obs_dim = int(envs[0].obs_dim)
+        self.bus.subscribe(keys.status(self.cfg.run_id, "learner", 0), self._on_learner_status)
         self.bus.subscribe(keys.params(self.cfg.run_id), self._on_params)
         self.listen_control()
         self.m.healthy.labels(**self.labels).set(1)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
 import queue
 import secrets
 import time
@@ -37,7 +38,7 @@ from services.learner.tracking import EventFile, tensorboard_available, x_of  # 
 
 
 CHUNK_OUTCOMES = ("used", "stale", "incarnation", "shape", "future", "actor_id", "overflow", "queue_full",
-                  "lost", "actor_restarts")
+                  "lost", "actor_restarts", "duplicate", "seq_jump", "unused_restart")
 
 
 class MetricsLog:
@@ -142,13 +143,15 @@ class LearnerService(Service):
         self.updates = 0
         self.env_steps = 0
         # bounded: a flood (or a slow update) drops chunks, counted, instead of growing memory
-        self.chunks: queue.Queue[bytes] = queue.Queue(maxsize=cfg.learner_queue_chunks)
+        self.chunks: queue.Queue[tuple[str, bytes]] = queue.Queue(maxsize=cfg.learner_queue_chunks)
         self.pending: deque[dict] = deque()
         # chunk outcomes; "lost" counts chunks an actor sent that never reached an update
         # here (gaps in its chunk sequence: sent while this learner was down, or received
         # by a previous incarnation after its last checkpoint)
         self.counts = {k: 0 for k in CHUNK_OUTCOMES}
         self.last_seq: dict[str, int] = {}       # actor sender -> newest chunk seq seen
+        self.last_seq_t: dict[str, float] = {}   # actor sender -> that chunk's send time (header t)
+        self._recent: dict[str, deque[tuple[int, float]]] = {}   # (seq, t) of each actor's recent chunks
         self.unfiltered_steps = 0                # shielded steps whose a_exec broke a row (audit; must stay 0)
         self.paths = RunDir(cfg.run_dir)
         self._published_floor = -1
@@ -209,8 +212,11 @@ class LearnerService(Service):
             "version": self.version,
             "updates": self.updates,
             "env_steps": self.env_steps,
-            "counts": dict(self.counts),
+            # chunks admitted but not yet used are gone for a learner resumed from here:
+            # counted, so that every chunk of an actor's sequence has exactly one outcome
+            "counts": {**self.counts, "unused_restart": self.counts["unused_restart"] + len(self.pending)},
             "last_seq": dict(self.last_seq),
+            "last_seq_t": dict(self.last_seq_t),
             "unfiltered_steps": self.unfiltered_steps,
             "rng": {"torch": torch.get_rng_state(),
                     "numpy_mt19937": torch.from_numpy(np_state[1].astype(np.int64)),
@@ -246,6 +252,7 @@ class LearnerService(Service):
         self.env_steps = int(ck["env_steps"])
         self.counts.update({k: int(v) for k, v in ck["counts"].items() if k in self.counts})
         self.last_seq = {str(k): int(v) for k, v in ck.get("last_seq", {}).items()}
+        self.last_seq_t = {str(k): float(v) for k, v in ck.get("last_seq_t", {}).items()}
         self.unfiltered_steps = int(ck.get("unfiltered_steps", 0))
         self.log.info("resumed from checkpoint version %d (update %d)", self.resumed_from, self.updates)
         return True
@@ -293,19 +300,25 @@ class LearnerService(Service):
                 "deploy_correction": e["correction_mean"], "deploy_probe_s": time.perf_counter() - t0}
 
     # ------------------------------------------------------------- chunks
-    def _on_traj(self, _key: str, payload: bytes) -> None:
+    def _on_traj(self, key: str, payload: bytes) -> None:
         try:
-            self.chunks.put_nowait(payload)  # decode on the learner thread, not Zenoh's
+            # decode on the learner thread, not Zenoh's; the key's actor id goes along: under
+            # the TLS profile with per-actor certificates only actor i may publish traj/<i>
+            self.chunks.put_nowait((key.rsplit("/", 1)[-1], payload))
         except queue.Full:
             self._drop("queue_full")
             self.m.dropped.labels(**self.labels, queue="learner_chunks").inc()
 
-    def _admit(self, msg) -> None:
+    def _admit(self, msg, key_id: str | None = None) -> None:
         body = msg.body
-        if not 0 <= body["actor_id"] < self.cfg.actors or msg.sender != f"actor/{body['actor_id']}":
+        if not 0 <= body["actor_id"] < self.cfg.actors or msg.sender != f"actor/{body['actor_id']}" \
+                or (key_id is not None and key_id != str(body["actor_id"])):
             self._drop("actor_id")   # not one of this run's actors: not part of any actor's sequence
             return
-        self._account_seq(msg.sender, msg.seq)
+        replay = self._account_seq(msg.sender, msg.seq, msg.t)
+        if replay:
+            self._drop(replay)   # a copy, or a jump no actor makes: trains nothing, moves no count
+            return
         versions = body["version_t"]
         if body["incarnation"] != self.incarnation:
             self._drop("incarnation")
@@ -320,17 +333,31 @@ class LearnerService(Service):
                 self.pending.popleft()   # the oldest would go stale first anyway
                 self._drop("overflow")
 
-    def _account_seq(self, sender: str, seq: int) -> None:
+    def _account_seq(self, sender: str, seq: int, t: float) -> str | None:
         """Chunks an actor sent that never arrived: gaps in its per-sender sequence
-        (which starts at 0; one that starts over is a restarted actor process)."""
+        (which starts at 0; one that starts over, sent later than the newest, is a
+        restarted actor process). Returns why a chunk is not part of the sequence:
+        ``duplicate`` (a chunk seen before, or an older one replayed: sent no later
+        than the newest) or ``seq_jump`` (more than ``max_seq_gap`` ahead); those
+        change no count but their own, so replays never inflate ``lost``."""
+        recent = self._recent.setdefault(sender, deque(maxlen=64))
+        if (seq, t) in recent:
+            return "duplicate"
         last = self.last_seq.get(sender, -1)   # -1: every chunk before this one is missing
-        if seq <= last:                          # the actor process restarted
+        restart = seq <= last
+        if restart and t <= self.last_seq_t.get(sender, -math.inf):
+            return "duplicate"
+        gap = seq - (-1 if restart else last) - 1
+        if gap > self.cfg.max_seq_gap:
+            return "seq_jump"
+        if restart:                              # the actor process restarted
             self.counts["actor_restarts"] += 1
-            last = -1
-        if seq > last + 1:
-            self.counts["lost"] += seq - last - 1
-            self.m.chunks.labels(**self.labels, outcome="lost").inc(seq - last - 1)
-        self.last_seq[sender] = seq
+        if gap > 0:
+            self.counts["lost"] += gap
+            self.m.chunks.labels(**self.labels, outcome="lost").inc(gap)
+        self.last_seq[sender], self.last_seq_t[sender] = seq, t
+        recent.append((seq, t))
+        return None
 
     def _drop(self, why: str) -> None:
         self.counts[why] += 1
@@ -354,12 +381,12 @@ class LearnerService(Service):
     def drain(self) -> None:
         while True:
             try:
-                payload = self.chunks.get_nowait()
+                key_id, payload = self.chunks.get_nowait()
             except queue.Empty:
                 return
             msg = self.decode(payload, "traj")
             if msg is not None:
-                self._admit(msg)
+                self._admit(msg, key_id)
 
     def try_update(self) -> bool:
         # chunks may have become stale while waiting (an update happened)

@@ -8,11 +8,25 @@ at most ``shield.window_s`` or until ``shield.max_batch`` QP rows are queued,
 then solve everything in one call (requests of different row counts M are
 padded to the largest with masked-out zero rows). Every query is finished (dropped) exactly
 once, with a reply or a ``reply_err`` carrying ``"<reason>: <detail>"``.
+
+Budgets (issue 32: one request must not stall the shield): a request's size
+is capped at decode by the run's spec, ``M <= env.max_rows`` rows per problem
+and ``B <= max(envs_per_actor, shield.max_batch)`` problems (a ``limit``
+rejection, counted), so one solve's cost is bounded by ``max_batch`` problems
+of at most ``max_rows`` rows, each under the QP's own iteration cap
+(``QPConfig.max_iter``; an uncertified answer is STATUS_MAX_ITER, which actors
+refuse). A request that waited longer than the actors' ``shield_timeout_s``
+is not solved (its asker gave up; answered ``expired``, counted). Service is
+fair across senders: decoded requests wait in one bounded FIFO per sender
+(``shield.max_pending_per_sender``, and ``shield.max_queue`` in all; overflow
+answered ``overloaded`` and counted) and each batch takes them round-robin, so a flooding sender gets its
+share of the solver and no more.
 """
 from __future__ import annotations
 
 import queue
 import time
+from collections import OrderedDict, deque
 
 import numpy as np
 
@@ -45,13 +59,23 @@ class ShieldService(Service):
         self.rows_rate = RateMeter()
         self.busy_s = 0.0   # decoding, solving and replying (not waiting): capacity = rows / busy_s
         self._queue: queue.Queue[Request] | None = None
+        # decoded requests waiting for a batch, one FIFO per sender (round-robin service)
+        self._pending: OrderedDict[str, deque[tuple[Request, dict]]] = OrderedDict()
+        self._pending_rows = 0
+        self._n_pending = 0   # queries in all FIFOs together, at most shield.max_queue
+        self.n_expired = 0    # requests older than the actors' timeout, not solved
+        self.n_unfair = 0     # requests refused because their sender already had its share waiting
+        # the run's spec caps one request (wire "limit" beyond): rows per problem, problems
+        self.bounds = {"M": int(cfg.env.max_rows), "B": max(int(cfg.envs_per_actor), int(cfg.shield.max_batch))}
 
     def status_fields(self) -> dict:
         return {"shield_p99_s": self.solve_window.quantile(0.99),
                 "extra": {"requests": float(self.n_requests), "rows": float(self.n_rows),
-                          "dropped": float(self.n_dropped),
+                          "dropped": float(self.n_dropped), "expired": float(self.n_expired),
+                          "sender_overflow": float(self.n_unfair),
                           "rows_per_s": self.rows_rate.rate(), "busy_s_total": self.busy_s,
-                          "queue_depth": float(self._queue.qsize() if self._queue else 0)}}
+                          "queue_depth": float(self._queue.qsize() if self._queue else 0),
+                          "waiting": float(self._n_pending)}}
 
     # ------------------------------------------------------------- loop
     def warm_up(self) -> None:
@@ -72,31 +96,29 @@ class ShieldService(Service):
         self.publish_status(force=True)
         while not self.stop.is_set():
             self.publish_status()
-            try:
-                first = q.get(timeout=0.05)
-            except queue.Empty:
+            self._drain(q, wait=0.0 if self._pending else 0.05)
+            if not self._pending:
                 continue
-            batch = [first]
-            good: list[tuple[Request, dict]] = []
-            rows = self._admit(first, good)
             deadline = time.perf_counter() + self.cfg.shield.window_s
             # A synchronous actor has at most one request waiting, so once one
             # per actor of this shard is queued nobody else is coming: close the
             # window early (a pipelined actor's second group rides in the next batch).
             expected = max(1, self.cfg.actors_of_shard(self.member_id))
-            while rows < self.cfg.shield.max_batch and len(batch) < expected:
+            while self._pending_rows < self.cfg.shield.max_batch and len(self._pending) < expected:
                 remaining = deadline - time.perf_counter()
-                try:
-                    req = q.get_nowait() if remaining <= 0 else q.get(timeout=remaining)
-                except queue.Empty:
+                if remaining <= 0 or not self._drain(q, wait=remaining, most=1):
                     break
-                batch.append(req)
-                rows += self._admit(req, good)
             self.m.shield_queue.labels(**self.labels).set(q.qsize())
-            self.handle(batch, good)
+            good = self._fair_batch()
+            self.handle([req for req, _ in good], good)
         self.state = "stopped"
         self.publish_status(force=True)
         # answer what is left so no asker waits for its timeout
+        for waiting in self._pending.values():
+            for req, _ in waiting:
+                req.reply_err(b"stopping: shield shutting down")
+        self._pending.clear()
+        self._n_pending = self._pending_rows = 0
         while True:
             try:
                 q.get_nowait().reply_err(b"stopping: shield shutting down")
@@ -108,24 +130,76 @@ class ShieldService(Service):
         self.n_dropped += 1
         self.m.dropped.labels(**self.labels, queue="shield_queries").inc()
 
-    def _admit(self, req: Request, good: list) -> int:
-        """Decode one request into ``good``; a bad one is answered with
-        reply_err at once. Returns its number of QP rows."""
+    def _drain(self, q: queue.Queue, wait: float, most: int | None = None) -> int:
+        """Move received queries into their senders' FIFOs (decoded and checked):
+        block up to ``wait`` s for the first, then take what is there, at most
+        ``most``. Returns how many were taken."""
+        n = 0
+        while most is None or n < most:
+            try:
+                req = q.get(timeout=wait) if n == 0 and wait > 0 else q.get_nowait()
+            except queue.Empty:
+                break
+            n += 1
+            self._admit(req)
+        return n
+
+    def _admit(self, req: Request) -> None:
+        """Decode one request into its sender's FIFO; a bad, expired or
+        over-share one is answered with reply_err at once."""
         t0 = time.perf_counter()
         try:
-            return self._decode_request(req, good)
+            self._decode_request(req)
         finally:
             self.busy_s += time.perf_counter() - t0
 
-    def _decode_request(self, req: Request, good: list) -> int:
+    def _decode_request(self, req: Request) -> None:
         self.n_requests += 1
         self.m.shield_requests.labels(**self.labels).inc()
-        msg = self.decode(req.payload, "shield_req")
+        msg = self.decode(req.payload, "shield_req", bounds=self.bounds)
+        req.payload = b""   # the bytes are decoded (or refused): do not hold them while waiting
         if msg is None:
             self._error(req, "rejected", "request failed wire validation")
-            return 0
-        good.append((req, msg.body))
-        return msg.body["a_prop"].shape[0]
+            return
+        waiting = self._pending.get(msg.sender, ())
+        if len(waiting) >= self.cfg.shield.max_pending_per_sender or self._n_pending >= self.cfg.shield.max_queue:
+            # one sender's share, or all of them (a flood under ever new sender names)
+            self.n_unfair += 1
+            self.m.dropped.labels(**self.labels, queue="shield_sender").inc()
+            self._error(req, "overloaded", f"{msg.sender} has {len(waiting)} of {self._n_pending} queries waiting, retry")
+            return
+        self._pending.setdefault(msg.sender, deque()).append((req, msg.body))
+        self._pending_rows += msg.body["a_prop"].shape[0]
+        self._n_pending += 1
+
+    def _fair_batch(self) -> list[tuple[Request, dict]]:
+        """Up to ``shield.max_batch`` rows of waiting requests, taken round-robin
+        over senders (one request per sender per round, the oldest first), and
+        never one that waited past the actors' timeout (answered ``expired``)."""
+        good: list[tuple[Request, dict]] = []
+        rows, max_rows = 0, self.cfg.shield.max_batch
+        expire_s = self.cfg.actor.shield_timeout_s
+        now = time.perf_counter()
+        while self._pending and rows < max_rows:
+            sender, waiting = next(iter(self._pending.items()))
+            req, body = waiting[0]
+            n = body["a_prop"].shape[0]
+            if good and rows + n > max_rows:
+                break
+            waiting.popleft()
+            self._pending_rows -= n
+            self._n_pending -= 1
+            if waiting:
+                self._pending.move_to_end(sender)   # its next request waits for the others' turn
+            else:
+                del self._pending[sender]
+            if now - req.t_recv > expire_s:
+                self.n_expired += 1
+                self._error(req, "expired", f"waited {now - req.t_recv:.3f} s, past the actors' timeout")
+                continue
+            good.append((req, body))
+            rows += n
+        return good
 
     def handle(self, batch: list[Request], good: list[tuple[Request, dict]]) -> None:
         """Solve all admitted requests in one call, their rows padded to the
