@@ -143,6 +143,27 @@ def _load_checked(path: Path, entry: dict | None) -> dict:
     return ck
 
 
+def load_newest(directory: str | Path, n: int) -> list[dict]:
+    """The newest ``n`` of this run's checkpoints that load and match the manifest, oldest
+    first (a damaged one is skipped with a logged warning): what a final evaluation over
+    the last checkpoints runs."""
+    d = Path(directory)
+    entries = read_manifest(d) if d.is_dir() else None
+    candidates = ([(d / e["name"], e) for e in entries] if entries is not None
+                  else [(p, None) for p in list_checkpoints(d)])
+    out = []
+    for path, entry in reversed(candidates):
+        try:
+            out.append(_load_checked(path, entry))
+        except Exception as exc:  # noqa: BLE001 - skipped, as resume skips it
+            log.warning("checkpoint %s does not load (%s); not evaluated", path, str(exc).splitlines()[0][:160]
+                        if str(exc) else type(exc).__name__)
+            continue
+        if len(out) == n:
+            break
+    return out[::-1]
+
+
 def load_latest(directory: str | Path) -> dict | None:
     """Newest of this run's checkpoints that loads, or None when there is none.
     A damaged one is skipped with a logged warning in favour of the previous;

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from common.algos.registry import method_spec
-from common.checkpoint import list_checkpoints, load_checkpoint, load_latest
+from common.checkpoint import load_latest, load_newest
 from common.evaluation.deployment import evaluate_policy
 from common.policy.tree_torch import policy_params_from_checkpoint
 from common.rundir import RunDir, atomic_write_text
@@ -258,16 +258,7 @@ def final_evals(cfg: TrainConfig, params: dict, version) -> tuple[dict, list[dic
 
 def last_checkpoint_params(directory: Path, n: int) -> list[tuple[int, dict]]:
     """(version, tree parameters) of the newest ``n`` checkpoints that load, oldest first."""
-    out = []
-    for path in reversed(list_checkpoints(directory)):
-        try:
-            ck = load_checkpoint(path)
-            out.append((int(ck["version"]), policy_params_from_checkpoint(ck)))
-        except Exception:  # noqa: BLE001 - a damaged checkpoint is skipped, as resume skips it
-            continue
-        if len(out) == n:
-            break
-    return out[::-1]
+    return [(int(ck["version"]), policy_params_from_checkpoint(ck)) for ck in load_newest(directory, n)]
 
 
 def mean_eval(evals: list[dict]) -> dict:

@@ -32,3 +32,20 @@ def test_bad_values_name_the_field():
         train(TrainConfig(), overrides={"algo.no_such": 1})
     with pytest.raises(ValueError, match="mode"):
         train(TrainConfig(), mode="ray")
+
+
+def test_final_evaluation_over_the_last_checkpoints(tmp_path):
+    import numpy as np
+
+    cfg = TrainConfig(method="happo", updates=4, envs_per_actor=2, chunk_len=8, eval_episodes=2,
+                      checkpoint_every=2, eval_checkpoints=2, run_dir=str(tmp_path / "run"))
+    run = train(cfg)
+    per = run.summary["eval_by_checkpoint"]
+    assert [e["version"] for e in per] == [2, 4] and run.summary["eval"]["checkpoints"] == 2
+    assert run.summary["eval"]["episodes_finished"] == 4
+    for key in ("success_rate", "return_mean", "col_per_1k"):
+        assert run.summary["eval"][key] == pytest.approx(np.mean([e[key] for e in per]))
+    kept = np.load(run.run_dir / "evaluated_params.npz", allow_pickle=False)
+    assert {k.split("/")[0] for k in kept.files} == {"v2", "v4"}
+    with pytest.raises(ValueError, match="eval_checkpoints"):
+        train(TrainConfig(eval_checkpoints=4, checkpoint_keep=3))
