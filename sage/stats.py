@@ -104,15 +104,22 @@ def paired_difference_ci(pairs: dict, level: float = LEVEL, resamples: int = RES
     return out
 
 
-def runs_needed(effect: float, sd: float, level: float = LEVEL, power: float = 0.8) -> int | None:
-    """Matched runs (pairs) for a two-sided test of a mean paired difference ``effect`` at
-    ``level`` with ``power``, given the differences' standard deviation ``sd``:
-    n = ((z_{1-alpha/2} + z_power) sd / effect)^2. None where it cannot be said (no spread
-    measured or no effect)."""
+def runs_needed(effect: float, sd: float, level: float = LEVEL, power: float = 0.8, most: int = 100_000) -> int | None:
+    """Matched runs (pairs) for a two-sided paired t-test of a mean difference ``effect`` at
+    ``level`` with ``power``, given the differences' standard deviation ``sd``: the least
+    n >= 2 with (t_{n-1, 1-alpha/2} + t_{n-1, power}) sd / sqrt(n) <= |effect| (the normal
+    approximation's n = ((z_{1-alpha/2} + z_power) sd / effect)^2, corrected for small n).
+    None where it cannot be said (no spread measured, no effect) or above ``most``."""
     if not (sd > 0 and effect != 0) or math.isnan(sd) or math.isnan(effect):
         return None
     z = _st.norm.ppf(1 - (1 - level) / 2) + _st.norm.ppf(power)
-    return int(math.ceil((z * sd / abs(effect)) ** 2))
+    n = max(2, int(math.ceil((z * sd / abs(effect)) ** 2)))
+    while n <= most:
+        t = _st.t.ppf(1 - (1 - level) / 2, n - 1) + _st.t.ppf(power, n - 1)
+        if t * sd / math.sqrt(n) <= abs(effect):
+            return n
+        n += 1
+    return None
 
 
 def verdict(ci: list[float], claimed_sign: int) -> str:

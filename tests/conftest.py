@@ -1,5 +1,45 @@
-"""Shared fixtures."""
+"""Shared fixtures, and the test tiers.
+
+Every test module belongs to one tier (``pyproject.toml`` declares the markers):
+
+- ``unit``: pure functions and single objects, no threads, no processes;
+- ``integration``: services as threads in one process (an in-process bus, a tiny run);
+- ``system``: real processes, routers, Ray, network namespaces.
+
+``pytest -m unit`` is the quick loop while editing; CI runs every tier. A new test
+module must be placed in ``TIERS`` (``test_every_module_has_a_tier`` in
+tests/test_layers.py fails otherwise).
+"""
 import pytest
+
+TIERS = {
+    "unit": {
+        "algos", "algos_critic", "algos_env", "algos_learning", "audit_stats", "audit_trace", "audit_tree",
+        "base_modules", "bench_scaling", "compare", "env", "env_fast", "env_kernels", "files_are_data",
+        "graded_outcomes", "instrument", "kernels_nogil", "mechanism_metrics", "outcome_metrics", "parallel_env",
+        "payload_points", "progress", "proposal", "proposal_kernels", "protocol", "qp", "qp_cli", "qp_properties",
+        "readme", "report", "report_ci", "row_kernels", "safety", "safety_honesty", "safety_kkt",
+        "safety_profiles", "sail", "sail_kernel", "sparse_tree", "stats", "talo", "talo_fast", "tree",
+        "tree_kernel", "wire", "wire_fuzz",
+    },
+    "integration": {
+        "actor_pruned_rows", "api", "checkpoint", "cli", "config", "env_layouts", "hostile", "human_slot",
+        "pacing", "pipeline_shards", "policy_lag", "reconciliation", "services", "shield_budgets", "shield_prune",
+        "suite_eval", "tensorboard", "tracking", "transport_limits", "video",
+    },
+    "system": {
+        "adam", "bench_system", "bundle", "cli_errors", "day_one", "faults", "fuzz_handlers", "layers",
+        "multihost", "ray", "rollout", "supervisor", "tls_acl", "trace_stream",
+    },
+}
+TIER_OF = {f"test_{name}": tier for tier, names in TIERS.items() for name in names}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        tier = TIER_OF.get(item.module.__name__.rsplit(".", 1)[-1]) if item.module is not None else None
+        if tier is not None:
+            item.add_marker(getattr(pytest.mark, tier))
 
 
 @pytest.fixture

@@ -37,3 +37,16 @@ def test_a_forbidden_import_breaks_a_contract(tmp_path):
     assert proc.returncode != 0
     assert "app > deploy > services > common BROKEN" in proc.stdout
     assert "common.wire -> services.config" in proc.stdout
+
+
+def test_every_module_has_a_tier():
+    """tests/conftest.py places each test module in one tier (unit / integration / system)."""
+    from pathlib import Path
+
+    from conftest import TIERS
+
+    modules = {p.stem[len("test_"):] for p in Path(__file__).parent.glob("test_*.py")}
+    placed = [name for names in TIERS.values() for name in names]
+    assert len(placed) == len(set(placed)), "a module in two tiers"
+    assert modules == set(placed), (f"without a tier: {sorted(modules - set(placed))}; "
+                                    f"gone: {sorted(set(placed) - modules)}")
