@@ -139,6 +139,18 @@ def power_table(records: list[dict]) -> list[dict]:
     return rows
 
 
+def observed_differences(records: list[dict], ref: str = "happo", arm: str = "happo_cbf") -> dict:
+    """The pilot's own paired differences arm - ref (matched scenario and seed) with their
+    stratified bootstrap CIs: the shield's effect the pilot itself measures."""
+    out = {}
+    for metric in ("success_rate", "drop_rate", "truncation_rate", "col_per_1k"):
+        pairs = _pairs(records, ref, arm, metric)
+        if pairs:
+            d = stats.paired_difference_ci(pairs)
+            out[metric] = {"difference": d["estimate"], "ci": d["ci"], "sd": d["sd"], "pairs": d["runs"]}
+    return out
+
+
 def analyze(folder: str | Path) -> dict:
     records = load_records(folder)
     scenarios = sorted({r["scenario"] for r in records})
@@ -147,6 +159,7 @@ def analyze(folder: str | Path) -> dict:
         "graded": graded_runs(records),
         "budgets": {s: plateau_budget([r for r in records if r["scenario"] == s]) for s in scenarios},
         "power": power_table(records),
+        "shield_effect": observed_differences(records),
         "outcomes": {arm: {k: float(np.mean([r["eval"].get(k) for r in records if arm_of(r) == arm
                                               and r["eval"].get(k) is not None] or [np.nan]))
                            for k in ("success_rate", "drop_rate", "truncation_rate", "col_per_1k")}
@@ -174,6 +187,9 @@ def _instrument(args: argparse.Namespace) -> int:
     print(f"graded runs: {g['graded']} of {g['runs']} (deployment SR strictly between 5% and 95%)")
     for s, b in out["budgets"].items():
         print(f"budget {s}: {b['budget']} updates (plateau at {b['plateau_update']}, trained {b['trained']})")
+    for metric, d in out["shield_effect"].items():
+        print(f"pilot HAPPO+CBF - HAPPO {metric}: {d['difference']:+.4g} [{d['ci'][0]:+.4g}, {d['ci'][1]:+.4g}] "
+              f"over {d['pairs']} matched runs")
     for row in out["power"]:
         n = row["runs_per_arm"]
         print(f"{row['claim']}: effect {row['effect_here']:+.4g} {row['metric']}, sd {row['sd']:.3g} "
