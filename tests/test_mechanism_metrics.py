@@ -83,6 +83,21 @@ def test_registry_has_the_ablation_arm():
     assert (t.shielded, t.uses_sail, t.joint_step) == (j.shielded, j.uses_sail, j.joint_step)
     with pytest.raises(ValueError):
         AlgoConfig(talo_step="sgd")
+
+
+def test_the_registry_names_the_update_step_the_learner_runs():
+    from common.algos.joint import joint_step
+    from common.algos.registry import MethodSpec
+    from common.algos.sequential import sequential_step
+
+    for name in ALL_METHODS:
+        m = make_method(name, small_cfg(), OBS, 0)
+        want = joint_step if method_spec(name).step == "joint" else sequential_step
+        assert m.update_step is want and m.joint_step == (method_spec(name).step == "joint")
+    with pytest.raises(ValueError, match="step must be one of"):
+        MethodSpec("x", "X", shielded=True, uses_sail=False, uses_talo=False, step="parallel")
+    with pytest.raises(ValueError, match="TALO is a joint step"):
+        MethodSpec("x", "X", shielded=True, uses_sail=False, uses_talo=True, step="sequential")
     with pytest.raises(ValueError):
         AlgoConfig(happo_order="epoch")
     with pytest.raises(ValueError):
