@@ -146,7 +146,7 @@ def bootstrap_ci(values, strata=None, n_resamples: int = BOOTSTRAP_RESAMPLES, se
 
 TRAIN_EXPOSURE_KEYS = ("train_col_per_1k", "train_margin_col_per_1k", "train_drop_rate", "train_env_steps")
 CURVE_MEAN_KEYS = ("w_gap", "cos_ind_team")
-# Like-for-like mechanism diagnostics, logged by every method (common/algos/methods.py):
+# Like-for-like mechanism diagnostics, logged by every method (common/algos/diagnostics.py):
 # their training means, reported in one table (docs/interfaces.md, learner metrics)
 MECHANISM_KEYS = ("w_gap_first", "w_gap_mean", "cos_ind_team_first", "cos_ind_team_mean", "talo_condition_met",
                   "proposal_violation_rate", "correction_st", "exec_minus_prop", "sail_residual")

@@ -1,4 +1,5 @@
-"""The learning methods (common/algos/methods.py, Table I plus the joint_cbf ablation) on synthetic batches."""
+"""The learning methods (common/algos/methods.py and its step modules, Table I plus the joint_cbf
+ablation) on synthetic batches."""
 from __future__ import annotations
 
 import io
@@ -9,6 +10,7 @@ import torch
 
 from common.algos import AlgoConfig, make_method
 from common.algos.registry import ALL_METHODS
+from common.algos.sequential import happo_step
 from common.algos.synthetic import BanditTask, collect
 from common.algos.talo import individual_gradient, talo_gap, unflatten_like
 from common.policy.sail import SailConfig, sail_center_implicit, sail_project
@@ -82,9 +84,9 @@ def prepared(name, seed=0, double=True, human_rate=0.2):
 
 
 def team_surrogates(m, mb, tau=0.5, kappa=3.0):
-    a_st = m._tree_actions(mb, tau, grad=True)
-    log_ratio = m._log_ratio(mb, m._center(mb, a_st, kappa), m._log_std())
-    return m._surrogates(mb, log_ratio)
+    a_st = m.proposal.tree_actions(mb, tau, grad=True)
+    log_ratio = m.proposal.log_ratio(mb, m.proposal.center(mb, a_st, kappa), m.proposal.log_std())
+    return m.proposal.surrogates(mb, log_ratio)
 
 
 def test_detached_partner_surrogates_give_same_g_ind():
@@ -94,11 +96,11 @@ def test_detached_partner_surrogates_give_same_g_ind():
     g_shared = individual_gradient(L_shared, m.groups)
     L_det = []
     for i in range(m.n_agents):
-        a_st = m._tree_actions(mb, 0.5, grad=True)
+        a_st = m.proposal.tree_actions(mb, 0.5, grad=True)
         blocks = a_st.split(3, dim=1)                       # partners cut from the graph
         a_st = torch.cat([b if j == i else b.detach() for j, b in enumerate(blocks)], dim=1)
-        log_ratio = m._log_ratio(mb, m._center(mb, a_st, 3.0), m._log_std())
-        L_det.append(m._surrogates(mb, log_ratio)[0][i])
+        log_ratio = m.proposal.log_ratio(mb, m.proposal.center(mb, a_st, 3.0), m.proposal.log_std())
+        L_det.append(m.proposal.surrogates(mb, log_ratio)[0][i])
     g_det = individual_gradient(L_det, m.groups, separable=True)
     assert g_shared.norm() > 0
     torch.testing.assert_close(g_det, g_shared, rtol=1e-9, atol=1e-12)
@@ -195,15 +197,15 @@ def test_talo_step_decreases_gap_relative_to_independent_step():
 @pytest.mark.parametrize("name", ["happo", "happo_cbf"])
 def test_happo_factor_is_product_of_updated_ratios(name):
     m, mb = prepared(name, seed=2, double=False)
-    m._happo_step(mb, tau=0.5, kappa=3.0)
+    happo_step(m, mb, tau=0.5, kappa=3.0)
     order = list(m.last_happo_factors)
     assert sorted(order) == [0, 1, 2]
     assert torch.equal(m.last_happo_factors[order[0]], torch.ones_like(mb.adv))
     # identity centers: carrier j's ratio depends on theta_j only, so the final
     # parameters reproduce the ratio each carrier had right after its own step
     with torch.no_grad():
-        a_st = m._tree_actions(mb, 0.5, grad=False)
-        ratio = m._log_ratio(mb, m._center(mb, a_st, 3.0), m._log_std()).exp()
+        a_st = m.proposal.tree_actions(mb, 0.5, grad=False)
+        ratio = m.proposal.log_ratio(mb, m.proposal.center(mb, a_st, 3.0), m.proposal.log_std()).exp()
     expected = torch.ones_like(mb.adv, dtype=torch.float64)
     for i in order:
         torch.testing.assert_close(m.last_happo_factors[i].double(), expected, rtol=1e-6, atol=1e-9)

@@ -1,7 +1,8 @@
 """The layering of docs/architecture.md, as import-linter contracts in
 pyproject.toml: app (sage) > deploy > services > common, and the layers
 inside common, services and deploy. The second test plants a forbidden import
-in a copy of the tree and checks that the contracts catch it."""
+(and a torch import in the torch-free registry) in a copy of the tree and checks
+that the contracts catch them."""
 from __future__ import annotations
 
 import os
@@ -33,10 +34,14 @@ def test_a_forbidden_import_breaks_a_contract(tmp_path):
     shutil.copy(ROOT / "pyproject.toml", tmp_path / "pyproject.toml")
     wire = tmp_path / "common" / "wire.py"
     wire.write_text(wire.read_text() + "\nfrom services.config import TrainConfig  # noqa: E402,F401\n")
+    registry = tmp_path / "common" / "algos" / "registry.py"   # indirectly, through another module
+    registry.write_text(registry.read_text() + "\nfrom common.algos import critic  # noqa: E402,F401\n")
     proc = _lint(tmp_path)
     assert proc.returncode != 0
     assert "app > deploy > services > common BROKEN" in proc.stdout
     assert "common.wire -> services.config" in proc.stdout
+    assert "torch-free: the method registry and the learner config BROKEN" in proc.stdout
+    assert "common.algos.registry -> common.algos.critic" in proc.stdout
 
 
 def test_every_module_has_a_tier():

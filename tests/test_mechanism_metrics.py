@@ -1,6 +1,7 @@
 """Like-for-like mechanism metrics (ratios against the update's start, the local
 claim's A/B), the direct TALO step, dense oblique trees, the Joint+CBF ablation
-and HAPPO's per-update carrier order (common/algos/methods.py)."""
+and HAPPO's per-update carrier order (common/algos/methods.py, diagnostics.py,
+joint.py, sequential.py)."""
 from __future__ import annotations
 
 import numpy as np
@@ -10,7 +11,8 @@ import torch
 from common.algos import AlgoConfig, make_method
 from common.algos.registry import ALL_METHODS, METHODS, method_spec
 from common.algos.synthetic import BanditTask, collect
-from common.algos.methods import gap_summary
+from common.algos.diagnostics import gap_summary
+from common.algos.joint import joint_step
 from common.algos.talo import cosine, flat_grad, talo_gap, talo_project, unflatten_like
 from common.policy.proposal import proposal_log_prob
 from common.shield.qp import solve_cbf_qp
@@ -35,17 +37,17 @@ def flat(m):
 
 
 def surrogates(m, mb, tau=TAU, kappa=KAPPA):
-    a_st = m._tree_actions(mb, tau, grad=True)
-    log_ratio = m._log_ratio(mb, m._center(mb, a_st, kappa), m._log_std())
-    return m._surrogates(mb, log_ratio)
+    a_st = m.proposal.tree_actions(mb, tau, grad=True)
+    log_ratio = m.proposal.log_ratio(mb, m.proposal.center(mb, a_st, kappa), m.proposal.log_std())
+    return m.proposal.surrogates(mb, log_ratio)
 
 
 def start_surrogates(m, mb, tau=TAU, kappa=KAPPA):
     """The diagnostics' surrogates at the current parameters when they are the update's
     start: the ratio against the forward itself (exactly 1)."""
-    a_st = m._tree_actions(mb, tau, grad=True)
-    logp = proposal_log_prob(m._center(mb, a_st, kappa), m._log_std(), mb.a_prop)
-    return m._surrogates(mb, m._ratio_against(mb, logp, logp.detach()))
+    a_st = m.proposal.tree_actions(mb, tau, grad=True)
+    logp = proposal_log_prob(m.proposal.center(mb, a_st, kappa), m.proposal.log_std(), mb.a_prop)
+    return m.proposal.surrogates(mb, m.proposal.ratio_against(mb, logp, logp.detach()))
 
 
 def lagged_batch(m, seed=0):
@@ -81,6 +83,21 @@ def test_registry_has_the_ablation_arm():
     assert (t.shielded, t.uses_sail, t.joint_step) == (j.shielded, j.uses_sail, j.joint_step)
     with pytest.raises(ValueError):
         AlgoConfig(talo_step="sgd")
+
+
+def test_the_registry_names_the_update_step_the_learner_runs():
+    from common.algos.joint import joint_step
+    from common.algos.registry import MethodSpec
+    from common.algos.sequential import sequential_step
+
+    for name in ALL_METHODS:
+        m = make_method(name, small_cfg(), OBS, 0)
+        want = joint_step if method_spec(name).step == "joint" else sequential_step
+        assert m.update_step is want and m.joint_step == (method_spec(name).step == "joint")
+    with pytest.raises(ValueError, match="step must be one of"):
+        MethodSpec("x", "X", shielded=True, uses_sail=False, uses_talo=False, step="parallel")
+    with pytest.raises(ValueError, match="TALO is a joint step"):
+        MethodSpec("x", "X", shielded=True, uses_sail=False, uses_talo=True, step="sequential")
     with pytest.raises(ValueError):
         AlgoConfig(happo_order="epoch")
     with pytest.raises(ValueError):
@@ -149,9 +166,9 @@ def test_the_ppo_surrogate_keeps_the_behaviour_ratio():
     mb, _ = m._prepare(batch)
     L, team = surrogates(m, mb)      # ratios against the stored logp (the behaviour policy)
     g = talo_gap(L, team, m.groups, separable=True, with_hvp=False)[0] \
-        + m.cfg.ent_coef * flat_grad(m._entropy().sum(), m.actor_params)
+        + m.cfg.ent_coef * flat_grad(m.proposal.entropy().sum(), m.actor_params)
     before = flat(m)
-    _, gap = m._joint_step(mb, TAU, KAPPA)
+    _, gap = joint_step(m, mb, TAU, KAPPA)
     torch.testing.assert_close(flat(m) - before, m.cfg.talo_eta * g, rtol=1e-9, atol=1e-12)
     assert gap["w_gap"] == 0.0       # while the diagnostics were taken at ratio 1
 
@@ -166,14 +183,14 @@ def test_on_policy_the_diagnostics_share_the_algorithms_surrogates(name):
     kappa = m.actor_settings(0.5)["kappa"]
     # the in-process actors give the learner's log-density bitwise (the sample-based bandit
     # here rounds differently in the last bits): make the stored one exactly that
-    fresh.logp_old = torch.where(fresh.active, m._start_log_prob(fresh, TAU, kappa), fresh.logp_old)
-    _, _, behaviour, start = m._start_point(fresh, TAU, kappa)
+    fresh.logp_old = torch.where(fresh.active, m.proposal.start_log_prob(fresh, TAU, kappa), fresh.logp_old)
+    _, _, behaviour, start = m.proposal.start_point(fresh, TAU, kappa)
     assert start is behaviour
     fresh.logp_old = fresh.logp_old + 1e-12 * fresh.active           # one ulp-ish apart: two surrogates
-    _, _, behaviour, start = m._start_point(fresh, TAU, kappa)
+    _, _, behaviour, start = m.proposal.start_point(fresh, TAU, kappa)
     assert start is not behaviour
     lagged, _ = m._prepare(lagged_batch(m))
-    _, _, behaviour, start = m._start_point(lagged, TAU, kappa)
+    _, _, behaviour, start = m.proposal.start_point(lagged, TAU, kappa)
     assert start is not behaviour and not torch.equal(start.log_ratio, behaviour.log_ratio)
     assert float(start.log_ratio.detach().abs().max()) == 0.0  # the forward is its own reference
 
@@ -215,15 +232,15 @@ def test_local_ab_is_deterministic_and_leaves_the_parameters(name):
     batch = lagged_batch(m)
     m.policy.double()
     mb, _ = m._prepare(batch)
-    mb.logp_start = m._start_log_prob(mb, TAU, KAPPA)
+    mb.logp_start = m.proposal.start_log_prob(mb, TAU, KAPPA)
     theta0 = flat(m)
     with torch.no_grad():               # move off the start, as the last minibatch of an update is
         for p in m.actor_params:
             p.add_(0.02 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel()),
                                       dtype=p.dtype))
     at = flat(m)
-    a_st, _, _, start = m._start_point(mb, TAU, KAPPA)
-    g_ind, _, w0, grad_w = m._gap(a_st, start, with_hvp=True)
+    a_st, _, _, start = m.proposal.start_point(mb, TAU, KAPPA)
+    g_ind, _, w0, grad_w = m.proposal.gap(a_st, start, with_hvp=True)
     m.cfg.talo_sigma = 2.0 * abs(float(grad_w @ g_ind)) / float(w0) + 1.0   # forces Delta_gap > 0
     length = 0.05
     first, second = m.local_ab(mb, TAU, KAPPA, length), m.local_ab(mb, TAU, KAPPA, length)
@@ -238,8 +255,8 @@ def test_local_ab_is_deterministic_and_leaves_the_parameters(name):
     assert first["ab_rate_talo"] < first["ab_rate_ind"]
 
     def w_here():
-        a_st, _, _, start = m._start_point(mb, TAU, KAPPA)
-        return m._gap(a_st, start, with_hvp=False)
+        a_st, _, _, start = m.proposal.start_point(mb, TAU, KAPPA)
+        return m.proposal.gap(a_st, start, with_hvp=False)
 
     g_talo, _ = talo_project(g_ind, grad_w, w0, m.cfg.talo_sigma, m.cfg.talo_eps)
     assert float(w0) == first["ab_w_before"]
@@ -301,10 +318,10 @@ def test_direct_talo_step_meets_descent_condition():
     sigma = 2.0 * abs(float(grad_w @ g_ind)) / float(w0) + 1.0       # forces Delta_gap > 0
     m.cfg.talo_sigma = sigma
     # the entropy gradient (log_std only) at theta_0
-    g_ent = m.cfg.ent_coef * flat_grad(m._entropy().sum(), m.actor_params)
+    g_ent = m.cfg.ent_coef * flat_grad(m.proposal.entropy().sum(), m.actor_params)
     w_start = float(talo_gap(*start_surrogates(m, mb), m.groups, with_hvp=False)[2])
     before = flat(m)
-    stats, gap = m._joint_step(mb, TAU, KAPPA)
+    stats, gap = joint_step(m, mb, TAU, KAPPA)
     delta = flat(m) - before
     assert stats["delta_gap"] > 0 and stats["talo_corrected"] == 1.0
     assert gap["w_gap"] == pytest.approx(w_start, rel=1e-12)    # the diagnostics: ratio 1 at theta_0
@@ -386,9 +403,9 @@ def test_joint_cbf_update_runs_and_steps_along_g_ind():
     j, mb = prepared_double("joint_cbf", talo_step="direct", talo_eta=0.05)
     L, team = surrogates(j, mb)
     g_ind = talo_gap(L, team, j.groups, separable=True, with_hvp=False)[0]
-    g = g_ind + j.cfg.ent_coef * flat_grad(j._entropy().sum(), j.actor_params)
+    g = g_ind + j.cfg.ent_coef * flat_grad(j.proposal.entropy().sum(), j.actor_params)
     before = flat(j)
-    j._joint_step(mb, TAU, KAPPA)
+    joint_step(j, mb, TAU, KAPPA)
     torch.testing.assert_close(flat(j) - before, 0.05 * g, rtol=1e-9, atol=1e-12)
 
 

@@ -12,6 +12,8 @@ import pytest
 import torch
 
 from common.algos import AlgoConfig, make_method
+from common.algos.diagnostics import gap_diagnostics
+from common.algos.sequential import happo_step
 from common.algos.synthetic import BanditTask, collect
 from common.algos.talo import Through, flat_grad, individual_gradient, talo_gap
 
@@ -87,7 +89,7 @@ def test_one_graph_gap_equals_two_graph_gap_on_the_learner(name):
     with torch.no_grad():   # off-policy start point
         for p in m.actor_params:
             p.add_(0.05 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel()), dtype=F64))
-    _, _, behaviour, _ = m._start_point(mb, 0.5, 3.0)
+    _, _, behaviour, _ = m.proposal.start_point(mb, 0.5, 3.0)
     L, team = behaviour.L_ind, behaviour.L_team
     new = talo_gap(L, team, m.groups, separable=not m.uses_sail)
     old = two_graph_gap(L, team, m.groups, separable=not m.uses_sail)
@@ -106,9 +108,9 @@ def test_coupled_blocks_through_a_st_equal_one_backward_per_carrier(name, with_h
     with torch.no_grad():   # off-policy start point: W_gap > 0
         for p in m.actor_params:
             p.add_(0.05 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel()), dtype=F64))
-    a_st, _, behaviour, _ = m._start_point(mb, 0.5, 3.0)
+    a_st, _, behaviour, _ = m.proposal.start_point(mb, 0.5, 3.0)
     L, team = behaviour.L_ind, behaviour.L_team
-    new = talo_gap(L, team, m.groups, with_hvp=with_hvp, through=m._through(a_st))
+    new = talo_gap(L, team, m.groups, with_hvp=with_hvp, through=m.proposal.through(a_st))
     old = talo_gap(L, team, m.groups, with_hvp=with_hvp)
     assert float(old[2]) > 1e-8 and old[0].abs().min() < old[0].abs().max()
     assert_same(new if with_hvp else new[:3], old if with_hvp else old[:3], rtol=1e-9, atol=1e-12)
@@ -121,14 +123,14 @@ def test_coupled_blocks_through_a_st_equal_one_backward_per_carrier(name, with_h
 
 def test_through_rejects_slices_that_do_not_tile_the_intermediate():
     m, mb = prepared_double("sage")
-    a_st, _, behaviour, _ = m._start_point(mb, 0.5, 3.0)
+    a_st, _, behaviour, _ = m.proposal.start_point(mb, 0.5, 3.0)
     L, team = behaviour.L_ind, behaviour.L_team
     via = [[t.W, t.b, t.K, t.beta] for t in m.trees]
     for slices in ([slice(0, 3), slice(3, 6), slice(6, 8)], [slice(0, 3), slice(6, 9), slice(3, 6)]):
         with pytest.raises(ValueError, match="tile"):
             talo_gap(L, team, m.groups, through=Through(a_st, slices, via))
     with pytest.raises(ValueError, match="graph"):
-        talo_gap(L, team, m.groups, through=Through(a_st.detach(), m._through(a_st).slices, via))
+        talo_gap(L, team, m.groups, through=Through(a_st.detach(), m.proposal.through(a_st).slices, via))
 
 
 @pytest.mark.parametrize("name", ["happo", "sail_cbf"])
@@ -137,9 +139,9 @@ def test_happo_step_reusing_the_diagnostics_gradient_is_the_plain_step(name):
     gives the same step, factors and statistics as recomputing it."""
     (a, mb), (b, _) = prepared_double(name), prepared_double(name)
     order = [2, 0, 1]
-    _, start = a._gap_diagnostics(mb, 0.5, 3.0)
-    sa = a._happo_step(mb, 0.5, 3.0, order=order, start=start)
-    sb = b._happo_step(mb, 0.5, 3.0, order=order)
+    _, start = gap_diagnostics(a.proposal, mb, 0.5, 3.0)
+    sa = happo_step(a, mb, 0.5, 3.0, order=order, start=start)
+    sb = happo_step(b, mb, 0.5, 3.0, order=order)
     assert not torch.equal(flat(a), flat(prepared_double(name)[0]))   # a step was taken
     torch.testing.assert_close(flat(a), flat(b), rtol=1e-9, atol=1e-12)
     for i in order:
@@ -151,21 +153,21 @@ def test_sequential_sail_steps_are_reused_with_the_same_result(monkeypatch):
     """sail_cbf's HAPPO step builds each carrier's graph on the SAIL step its
     refresh solved (one solve per carrier after the first, none repeated): the same
     parameters, factors and statistics as solving every center afresh."""
-    from common.algos import methods
+    from common.algos import proposal_map
 
     calls = []
-    counted = methods.sail_step
-    monkeypatch.setattr(methods, "sail_step", lambda *a, **k: calls.append(1) or counted(*a, **k))
+    counted = proposal_map.sail_step
+    monkeypatch.setattr(proposal_map, "sail_step", lambda *a, **k: calls.append(1) or counted(*a, **k))
     (a, mb), (b, _) = prepared_double("sail_cbf"), prepared_double("sail_cbf")
-    fresh = b._center
-    b._center = lambda mb, a_st, kappa, step=None: fresh(mb, a_st, kappa)   # ignores any step given
+    fresh = b.proposal.center
+    b.proposal.center = lambda mb, a_st, kappa, step=None: fresh(mb, a_st, kappa)   # ignores any step given
     order = [1, 2, 0]
-    _, start_a = a._gap_diagnostics(mb, 0.5, 3.0)
+    _, start_a = gap_diagnostics(a.proposal, mb, 0.5, 3.0)
     calls.clear()
-    sa = a._happo_step(mb, 0.5, 3.0, order=order, start=start_a)
+    sa = happo_step(a, mb, 0.5, 3.0, order=order, start=start_a)
     assert len(calls) == 2            # the refreshes after carriers 1 and 2; their graphs reuse them
-    _, start_b = b._gap_diagnostics(mb, 0.5, 3.0)
-    sb = b._happo_step(mb, 0.5, 3.0, order=order, start=start_b)
+    _, start_b = gap_diagnostics(b.proposal, mb, 0.5, 3.0)
+    sb = happo_step(b, mb, 0.5, 3.0, order=order, start=start_b)
     torch.testing.assert_close(flat(a), flat(b), rtol=1e-9, atol=1e-12)
     for i in order:
         torch.testing.assert_close(a.last_happo_factors[i], b.last_happo_factors[i], rtol=1e-9, atol=1e-12)

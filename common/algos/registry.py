@@ -1,14 +1,18 @@
 """The methods of Table I, plus the ablation arm, and what each one switches on;
 torch-free, so actors, the CLI and the report read it without loading the learner.
 
-| name        | executed action | proposal center            | actor update                         |
-|-------------|-----------------|----------------------------|--------------------------------------|
-| happo       | a_prop          | a_ST (identity)            | HAPPO sequential                     |
-| happo_cbf   | QP(a_prop)      | a_ST (identity)            | HAPPO sequential                     |
-| talo_cbf    | QP(a_prop)      | a_ST (identity)            | joint step along g_TALO              |
-| sail_cbf    | QP(a_prop)      | Pi_kappa(x, a_ST) (SAIL)   | HAPPO sequential                     |
-| sage        | QP(a_prop)      | Pi_kappa(x, a_ST) (SAIL)   | joint step along g_TALO              |
-| joint_cbf   | QP(a_prop)      | a_ST (identity)            | joint step along g_ind (no TALO)     |
+| name        | executed action | proposal center            | actor update (``step``)                  |
+|-------------|-----------------|----------------------------|------------------------------------------|
+| happo       | a_prop          | a_ST (identity)            | sequential: HAPPO                        |
+| happo_cbf   | QP(a_prop)      | a_ST (identity)            | sequential: HAPPO                        |
+| talo_cbf    | QP(a_prop)      | a_ST (identity)            | joint: along g_TALO                      |
+| sail_cbf    | QP(a_prop)      | Pi_kappa(x, a_ST) (SAIL)   | sequential: HAPPO                        |
+| sage        | QP(a_prop)      | Pi_kappa(x, a_ST) (SAIL)   | joint: along g_TALO                      |
+| joint_cbf   | QP(a_prop)      | a_ST (identity)            | joint: along g_ind (no TALO)             |
+
+``step`` names the update step the learner runs: ``"sequential"``
+(common/algos/sequential.py, HAPPO's per-carrier steps) or ``"joint"``
+(common/algos/joint.py, all carriers in one step).
 
 ``joint_cbf`` (ablation, not in Table I) is TALO+CBF without the Lyapunov
 projection: the same joint base scheme (all carriers stepped together, same
@@ -23,6 +27,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+UPDATE_STEPS: tuple[str, ...] = ("sequential", "joint")
+
 
 @dataclass(frozen=True)
 class MethodSpec:
@@ -31,21 +37,27 @@ class MethodSpec:
     shielded: bool      # executed actions pass the exact joint CBF-QP (Eq. qpshield)
     uses_sail: bool     # proposal center is the SAIL map Pi_kappa (Eq. sail_projection)
     uses_talo: bool     # the joint step goes along g_TALO (Eq. talo_projection)
-    joint_step: bool    # joint base scheme (all carriers in one step) instead of HAPPO's sequential one
+    step: str           # the update step: "sequential" (HAPPO, per carrier) or "joint" (all carriers at once)
 
     def __post_init__(self) -> None:
+        if self.step not in UPDATE_STEPS:
+            raise ValueError(f"{self.name}: step must be one of {UPDATE_STEPS}, got {self.step!r}")
         if self.uses_talo and not self.joint_step:
-            raise ValueError(f"{self.name}: TALO is a joint step (uses_talo needs joint_step)")
+            raise ValueError(f"{self.name}: TALO is a joint step (uses_talo needs step='joint')")
+
+    @property
+    def joint_step(self) -> bool:
+        return self.step == "joint"
 
 
 METHOD_SPECS: dict[str, MethodSpec] = {s.name: s for s in (
-    MethodSpec("happo", "HAPPO", shielded=False, uses_sail=False, uses_talo=False, joint_step=False),
-    MethodSpec("happo_cbf", "HAPPO+CBF", shielded=True, uses_sail=False, uses_talo=False, joint_step=False),
-    MethodSpec("talo_cbf", "TALO+CBF", shielded=True, uses_sail=False, uses_talo=True, joint_step=True),
-    MethodSpec("sail_cbf", "SAIL+CBF", shielded=True, uses_sail=True, uses_talo=False, joint_step=False),
-    MethodSpec("sage", "SAGE+CBF", shielded=True, uses_sail=True, uses_talo=True, joint_step=True),
+    MethodSpec("happo", "HAPPO", shielded=False, uses_sail=False, uses_talo=False, step="sequential"),
+    MethodSpec("happo_cbf", "HAPPO+CBF", shielded=True, uses_sail=False, uses_talo=False, step="sequential"),
+    MethodSpec("talo_cbf", "TALO+CBF", shielded=True, uses_sail=False, uses_talo=True, step="joint"),
+    MethodSpec("sail_cbf", "SAIL+CBF", shielded=True, uses_sail=True, uses_talo=False, step="sequential"),
+    MethodSpec("sage", "SAGE+CBF", shielded=True, uses_sail=True, uses_talo=True, step="joint"),
     # ablation: TALO+CBF's base scheme without the correction
-    MethodSpec("joint_cbf", "Joint+CBF", shielded=True, uses_sail=False, uses_talo=False, joint_step=True),
+    MethodSpec("joint_cbf", "Joint+CBF", shielded=True, uses_sail=False, uses_talo=False, step="joint"),
 )}
 METHODS: tuple[str, ...] = ("happo", "happo_cbf", "talo_cbf", "sail_cbf", "sage")   # Table I
 ABLATION_METHODS: tuple[str, ...] = ("joint_cbf",)
