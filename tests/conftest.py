@@ -43,6 +43,16 @@ def pytest_collection_modifyitems(config, items):
 
 
 @pytest.fixture
+def bus():
+    """A network-less Zenoh session (the in-process placement's bus)."""
+    from common.transport import Bus
+
+    b = Bus.open(inprocess=True)
+    yield b
+    b.close()
+
+
+@pytest.fixture
 def one_torch_thread():
     """2 shared CPU cores: torch intra-op threads only oversubscribe."""
     import torch

@@ -113,3 +113,22 @@ class FakeMethod:
     def load_state_dict(self, d):
         self.w = d["w"].numpy().copy()
         self.n = int(d["n"])
+
+
+def serve_shield(cfg, bus, solve, timeout: float = 60.0):
+    """A ShieldService with ``solve`` on a thread, once it is running: (service, stop event, thread)."""
+    import threading
+    import time
+
+    from services.shield.service import ShieldService
+
+    stop = threading.Event()
+    shield = ShieldService(cfg, bus, stop=stop, solve=solve)
+    th = threading.Thread(target=shield.run, daemon=True)
+    th.start()
+    deadline = time.monotonic() + timeout
+    while shield.state != "running":
+        if time.monotonic() > deadline:
+            raise AssertionError(f"the shield did not start within {timeout} s")
+        time.sleep(0.01)
+    return shield, stop, th

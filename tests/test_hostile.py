@@ -22,18 +22,10 @@ from test_services import make_cfg, sample, wait_for  # noqa: E402
 from common import keys, wire  # noqa: E402
 from common.safety_rows import SafetyRows  # noqa: E402
 from common.shield.verify import verify_answer  # noqa: E402
-from common.transport import Bus  # noqa: E402
 from services.actor.service import ActorService  # noqa: E402
 from services.config import ActorConfig, ShieldConfig  # noqa: E402
 from services.learner.service import LearnerService  # noqa: E402
 from services.shield.service import ShieldService  # noqa: E402
-
-
-@pytest.fixture
-def bus():
-    b = Bus.open(inprocess=True)
-    yield b
-    b.close()
 
 
 def _envs(pipelined: bool):

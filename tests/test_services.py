@@ -42,13 +42,6 @@ def sample(registry, name, **labels):
     return registry.get_sample_value(name, labels) or 0.0
 
 
-@pytest.fixture
-def bus():
-    b = Bus.open(inprocess=True)
-    yield b
-    b.close()
-
-
 def test_inprocess_end_to_end_publishes_versions_and_shields_every_action(tmp_path):
     cfg = make_cfg(tmp_path)
     envs = [FakeBatchEnv(2, seed=0), FakeBatchEnv(2, seed=1)]

@@ -14,35 +14,18 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from services_fakes import fake_solve  # noqa: E402
+from services_fakes import fake_solve, serve_shield  # noqa: E402
 from test_services import _req, make_cfg, wait_for  # noqa: E402
 
 from common import keys, wire  # noqa: E402
-from common.transport import Bus  # noqa: E402
 from services.config import ActorConfig, ShieldConfig  # noqa: E402
 from services.shield.service import ShieldService  # noqa: E402
-
-
-@pytest.fixture
-def bus():
-    b = Bus.open(inprocess=True)
-    yield b
-    b.close()
 
 
 def _attack(M, B=2, seed=0):
     rng = np.random.default_rng(seed)
     return {"a_prop": rng.uniform(-1, 1, (B, 9)), "C": rng.normal(size=(B, M, 9)), "c": rng.normal(size=(B, M)),
             "row_mask": np.ones((B, M), bool), "fixed_mask": np.zeros((B, 9), bool)}
-
-
-def _shield(cfg, bus, solve):
-    stop = threading.Event()
-    shield = ShieldService(cfg, bus, stop=stop, solve=solve)
-    th = threading.Thread(target=shield.run, daemon=True)
-    th.start()
-    wait_for(lambda: shield.state == "running", timeout=60)
-    return shield, stop, th
 
 
 def test_wire_bounds_refuse_symbols_beyond_the_run_spec():
@@ -70,7 +53,7 @@ def test_the_oversized_query_is_a_counted_limit_and_never_solved(tmp_path, bus):
         solved.append(rows.n_rows)
         return fake_solve(a, rows)
 
-    shield, stop, th = _shield(cfg, bus, solve)
+    shield, stop, th = serve_shield(cfg, bus, solve)
     solved.clear()
     M = 1500   # the attack at reduced scale: still ~45x the spec's rows, seconds for the real QP
     for i in range(3):
@@ -96,7 +79,7 @@ def test_one_senders_flood_cannot_starve_another(tmp_path, bus):
         return fake_solve(a, rows)
 
     release.set()                                    # the warm-up solve passes
-    shield, stop, th = _shield(cfg, bus, solve)
+    shield, stop, th = serve_shield(cfg, bus, solve)
     calls.clear()
     release.clear()
     ask = lambda body, sender, seq: bus.replies(  # noqa: E731 - sent now, collected later
@@ -133,7 +116,7 @@ def test_a_query_older_than_the_actors_timeout_is_not_solved(tmp_path, bus):
         return fake_solve(a, rows)
 
     release.set()                                    # the warm-up solve passes
-    shield, stop, th = _shield(cfg, bus, solve)
+    shield, stop, th = serve_shield(cfg, bus, solve)
     calls.clear()
     release.clear()
     send = lambda seq, sender: bus.replies(keys.shield(cfg.run_id), wire.encode(  # noqa: E731

@@ -2,7 +2,6 @@
 service solves requests of different row counts M in one padded call."""
 import inspect
 import sys
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -12,10 +11,10 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 sys.path.insert(0, str(Path(__file__).parent))
-from services_fakes import fake_solve  # noqa: E402
-from test_services import _ask_concurrently, make_cfg, wait_for  # noqa: E402
+from services_fakes import fake_solve, serve_shield  # noqa: E402
+from test_services import _ask_concurrently, make_cfg  # noqa: E402
 
-from common import keys, wire  # noqa: E402
+from common import wire  # noqa: E402
 from common.safety_rows import SafetyRows  # noqa: E402
 from common.shield.prune import DEFAULT_HI, DEFAULT_LO, MARGIN_REL, drop_box_redundant_rows, kept_rows  # noqa: E402
 from common.shield.qp import (  # noqa: E402
@@ -26,9 +25,7 @@ from common.shield.qp import (  # noqa: E402
     shield_actions,
     solve_cbf_qp,
 )
-from common.transport import Bus  # noqa: E402
 from services.config import ShieldConfig  # noqa: E402
-from services.shield.service import ShieldService  # noqa: E402
 
 D = 9
 ATOL = 1e-9
@@ -319,22 +316,6 @@ def test_real_env_rows_keep_every_active_row_and_shrink_the_message(scenario, hu
 
 
 # ----------------------------------------------------------------- the shield service
-@pytest.fixture
-def bus():
-    b = Bus.open(inprocess=True)
-    yield b
-    b.close()
-
-
-def _serve(cfg, bus, solve):
-    stop = threading.Event()
-    shield = ShieldService(cfg, bus, stop=stop, solve=solve)
-    th = threading.Thread(target=shield.run, daemon=True)
-    th.start()
-    wait_for(lambda: shield.state == "running", timeout=60.0)
-    return shield, stop, th
-
-
 def _pruned_requests():
     rng = np.random.default_rng(5)
     reqs = []
@@ -354,7 +335,7 @@ def test_shield_service_solves_requests_of_different_m_in_one_call(tmp_path, bus
         calls.append(rows.C.shape)
         return shield_actions(a_prop, rows)
 
-    shield, stop, th = _serve(cfg, bus, spy)
+    shield, stop, th = serve_shield(cfg, bus, spy)
     calls.clear()  # the warm-up solve
     reqs = _pruned_requests()
     replies = _ask_concurrently(cfg, bus, reqs)
@@ -385,7 +366,7 @@ def test_shield_service_isolates_a_failing_request_after_a_failed_joint_solve(tm
             raise ValueError("refused")
         return fake_solve(a_prop, rows)
 
-    shield, stop, th = _serve(cfg, bus, picky)
+    shield, stop, th = serve_shield(cfg, bus, picky)
     calls.clear()
     replies = _ask_concurrently(cfg, bus, reqs)
     stop.set()
