@@ -119,7 +119,7 @@ class ActorConfig:
     # Without the first rule actors outrun a slow learner and most chunks go stale;
     # without the second, a learner slower than its actors drops chunks as stale,
     # rolled out on cores the learner needed (docs/scaling.md).
-    max_chunks_ahead: int = bounded(2, ge=1, le=64)
+    max_chunks_ahead: int = bounded(2, ge=1, le=1024)
     pace_timeout_s: float = bounded(120.0, gt=0.0, le=86400.0)   # a lost params message never deadlocks
     # Fault injection (as RLlib's fault-injecting env): per env step, the actor process
     # exits abruptly with this probability. For supervised runs, which restart it; 0 = off.
