@@ -77,6 +77,20 @@ def wandb_records(path) -> list:
     return [pb.Record.FromString(x) for x in out]
 
 
+def finished_records(path, timeout_s: float = 30.0) -> list:
+    """The run file's records once W&B's writer has written its last (``exit``) record:
+    ``run.finish()`` hands the records to wandb's own writer process, which may still be
+    writing when it returns."""
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        records = wandb_records(path)
+        if any(r.WhichOneof("record_type") == "exit" for r in records) or time.monotonic() > deadline:
+            return records
+        time.sleep(0.1)
+
+
 def _items(update) -> dict:
     return {it.key or "/".join(it.nested_key): json.loads(it.value_json) for it in update}
 
@@ -94,7 +108,7 @@ def test_train_track_logs_metrics_config_and_final_eval_to_wandb_offline(tmp_pat
     summary = json.loads((run / "summary.json").read_text())
     (wb_file,) = (run / "wandb").glob("offline-run-*/run-*.wandb")
     assert summary["tracking"]["wandb"]["project"] == "sage-test"
-    records = wandb_records(wb_file)
+    records = finished_records(wb_file)
     kinds = [r.WhichOneof("record_type") for r in records]
     # every metrics row once, by section, at its env steps
     history = [_items(r.history.item) for r in records if r.WhichOneof("record_type") == "history"]
