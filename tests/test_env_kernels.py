@@ -212,7 +212,8 @@ def test_tracker_targets_and_reset_match_reference(seed):
     for phys in (fast.phys, ref.phys):
         phys.qpos[:], phys._ctrl[:] = qpos, ctrl
     actions = rng.uniform(-1.5, 1.5, (K, 9))   # beyond the box: the targets clip
-    np.testing.assert_allclose(fast.phys.targets(actions), reference.physics_targets(ref.phys, actions), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(fast.phys.targets(actions), reference.physics_targets(ref.phys, actions),
+                               rtol=0, atol=1e-12)
 
 
 @HYP

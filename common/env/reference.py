@@ -28,6 +28,8 @@ from common.env.task import StepOutcome
 from common.spec import JOINT_ACT_DIM, N_CARRIERS
 
 
+# ----------------------------------- geometry (WallSet queries; kernels.signed_distances, nearest_walls, ray_distances)
+
 def local_frame(walls: WallSet, pts):
     """Points [...,2] in every box's frame [...,W,2]."""
     d = pts[..., None, :] - walls.center  # [...,W,2]
@@ -72,6 +74,8 @@ def ray_distance(walls: WallSet, origin, direction, max_dist: float):
     return np.minimum(np.min(t, axis=-1), max_dist)
 
 
+# ------------------------------------------------------------------------- route (Route.project; kernels.route_project)
+
 def route_project(route: Route, xy, s_prev, back: float = 0.6, ahead: float = 1.6):
     """``Route.project``."""
     lo = route.index(np.asarray(s_prev) - back)
@@ -80,6 +84,8 @@ def route_project(route: Route, xy, s_prev, back: float = 0.6, ahead: float = 1.
     d2 = np.sum((route.points[idx] - xy[:, None, :]) ** 2, axis=-1)
     return route.s[idx[np.arange(len(xy)), np.argmin(d2, axis=1)]]
 
+
+# -------------------------------------- physics (TransportPhysics; kernels.tracker_targets, grasp_strain, reset_states)
 
 def tracker_targets(carrier_pose, ctrl, actions, cfg: EnvConfig) -> np.ndarray:
     """New tracker targets [K,9] from the measured carrier poses [K,3,3], the current targets
@@ -137,6 +143,8 @@ def physics_targets(phys: TransportPhysics, actions):
     return phys._ctrl
 
 
+# ------------------------------------ BatchEnv (kernels.pose_clearance, place_episodes, add_noise, accumulate_episodes)
+
 def start_clearance(batch: BatchEnv, xy, yaw: float, env: int = 0) -> float:
     """``BatchEnv.start_clearance``."""
     walls = batch.scene.wallsets[env]
@@ -178,6 +186,8 @@ def accumulate(batch: BatchEnv, o, margin_violation):
     acc["height"] += np.abs(snap.pz - CARRY_HEIGHT)
     np.minimum(batch._min_clear, snap.clearance, out=batch._min_clear)
 
+
+# ------------------------------------------------------------------- observations (kernels.snapshot_rows, observe_rows)
 
 def snapshot(phys: TransportPhysics, scene: SceneBatch, s_prev, goal_s, cfg: EnvConfig, out: Snapshot,
                        envs):
@@ -305,6 +315,8 @@ def global_state(snap: Snapshot, obs, goal_xy, goal_yaw, progress, time_left, hu
     return out.astype(np.float32)
 
 
+# ------------------------------------------------------------------------------------- task (kernels.step_outcome_rows)
+
 def step_outcome(snap, s_old: np.ndarray, t: np.ndarray, max_steps: int, goal_xy: np.ndarray,
                            goal_yaw: np.ndarray, cfg: EnvConfig) -> StepOutcome:
     """``task.step_outcome``."""
@@ -324,6 +336,8 @@ def step_outcome(snap, s_old: np.ndarray, t: np.ndarray, max_steps: int, goal_xy
     return StepOutcome(reward=reward, success=success, drop=drop, terminated=terminated, truncated=truncated,
                        collision=collision, heading_error=heading_err)
 
+
+# ----------------------------------------------------------------------- safety (kernels.spec_barrier_min, safety_rows)
 
 def spec_barrier_min(carrier_sd, payload_sd, carrier_xy, pair_rest, cfg: SafetyConfig) -> np.ndarray:
     """``safety.spec_barrier_min``."""

@@ -43,8 +43,8 @@ and are ignored. The human block stays exactly at its measured value.
 
 numpy solver: `sail_project_np` runs the Newton loop in a compiled numba kernel
 (`common/policy/sail_kernels.py`, one loop over samples, nogil so it runs in the actor
-and learner threads side by side); `reference.sail_project` (common/policy/reference.py) is the same solver as a
-vectorized numpy loop, the reference the kernel is tested against
+and learner threads side by side); `reference.sail_project` (common/policy/reference.py) is
+the same solver as a vectorized numpy loop, the reference the kernel is tested against
 (tests/test_sail_kernel.py). torch is imported inside the torch functions only: actor
 processes use the numpy solver and never load torch.
 """
@@ -133,15 +133,16 @@ def _check_options(n_newton, damping):
         raise ValueError(f"sail: damping must be one of {_DAMPINGS}, got {damping!r}")
 
 
-# ----------------------------------------------------------------------------- numpy (the kernels; the references prepare here too)
+# ----------------------------------------------------------------------------- numpy (the kernels)
 
 
 def _prepare_np(a_st, C, c, mask, kappa, n_newton, damping, fixed_mask, fixed_action, config,
                 compiled: bool = True):
     """Validation, fixed-block absorption and row normalization shared by the kernel and its
-    reference (``reference.sail_project``). Returns (a, Cn, cn, keep, kappa [B], n_newton, damping). ``compiled``: the
-    absorption and normalization in one compiled pass (``sail_kernels.sail_prepare``), else
-    in numpy (``absorb_fixed``, ``normalize_rows``: the references' path)."""
+    reference (``reference.sail_project``). Returns (a, Cn, cn, keep, kappa [B], n_newton,
+    damping). ``compiled``: the absorption and normalization in one compiled pass
+    (``sail_kernels.sail_prepare``), else in numpy (``absorb_fixed``, ``normalize_rows``: the
+    references' path, common/policy/reference.py)."""
     n_newton = config.n_newton if n_newton is None else n_newton
     damping = config.damping if damping is None else damping
     a = np.asarray(a_st, dtype=np.float64)

@@ -6,8 +6,8 @@ B = 16, a fixed cost a pipelined actor pays twice per step). The numpy
 versions are the references these are tested against (tests/test_row_kernels.py):
 common/shield/reference.py for the pruning (its keep mask ``prune._keep_fallback`` is
 also production's path for a per-column box) and ``verify.verify_answer_fallback``
-(production's path for a status array of another type) for the check; the arithmetic is the same, summed in another
-order (equal to rounding).
+(production's path for a status array of another type) for the check; the arithmetic
+is the same, summed in another order (equal to rounding).
 """
 from __future__ import annotations
 
