@@ -198,7 +198,6 @@ class TransportPhysics:
         self._floor_contacts = self.batch.bind("sensordata")[:, 0]
         self.contact = np.zeros(self.K, dtype=bool)
         self.released = np.zeros(self.K, dtype=bool)
-        self._grasp3 = np.concatenate([GRASP_LOCAL, np.zeros((N_CARRIERS, 1))], axis=1)[None]
         self._leash = (cfg.target_leash, cfg.target_leash * cfg.max_step_yaw / cfg.max_step_xy)
 
     # --- state access --------------------------------------------------------------

@@ -111,7 +111,8 @@ def tracker_targets(carrier_pose, ctrl, actions, cfg: EnvConfig) -> np.ndarray:
 
 def grasp_strain(phys: TransportPhysics):
     """``TransportPhysics.grasp_strain``."""
-    grasp_w = phys.payload_pos[:, None, :] + quat_rotate(phys.payload_quat, np.broadcast_to(phys._grasp3, (phys.K, 3, 3)))
+    grasp3 = np.concatenate([GRASP_LOCAL, np.zeros((N_CARRIERS, 1))], axis=1)[None]   # grasp points, payload frame
+    grasp_w = phys.payload_pos[:, None, :] + quat_rotate(phys.payload_quat, np.broadcast_to(grasp3, (phys.K, 3, 3)))
     cp = phys.carrier_pose
     hand = np.concatenate([cp[..., :2], np.full((phys.K, N_CARRIERS, 1), CARRY_HEIGHT)], axis=-1)
     return np.linalg.norm(grasp_w - hand, axis=-1)

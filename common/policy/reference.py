@@ -17,7 +17,7 @@ from common.policy import sail
 from common.policy.proposal import _A_PROP_OUTSIDE, _LOG_SQRT_2PI, _NONFINITE_CENTER, ProposalConfig
 from common.policy.proposal import _DEFAULT as _PROPOSAL_DEFAULT
 from common.policy.proposal import _check, _n_agents, _sample_bound
-from common.policy.rollout import _NONFINITE_HUMAN, carrier_fixed_mask
+from common.policy.rollout import _NONFINITE_HUMAN, _PARTIAL_BLOCK
 from common.policy.sail import SailConfig
 from common.policy.sail import _DEFAULT as _SAIL_DEFAULT
 from common.policy.tree import _team_inputs, carrier_params, tree_forward_np
@@ -76,11 +76,20 @@ def proposal_sample(center, log_std, rng: np.random.Generator, config: ProposalC
     return a, logp
 
 
+def _carrier_fixed_mask(fixed_mask: np.ndarray, n_agents: int, act_dim: int) -> np.ndarray:
+    """[B, N*A] bool column mask -> [B, N] per-carrier mask; raises if a block is only partly fixed."""
+    blocks = fixed_mask.reshape(len(fixed_mask), n_agents, act_dim)
+    whole = blocks.all(-1)
+    if np.any(blocks.any(-1) != whole):
+        raise ValueError(_PARTIAL_BLOCK)
+    return whole
+
+
 def human_blocks(a_tree: np.ndarray, fixed: np.ndarray, human: np.ndarray, n_agents: int):
     """``rollout.human_blocks``."""
     if np.any(fixed) and not np.all(np.isfinite(human[fixed])):
         raise ValueError(_NONFINITE_HUMAN)
-    human_carrier = carrier_fixed_mask(fixed, n_agents, a_tree.shape[1] // n_agents)
+    human_carrier = _carrier_fixed_mask(fixed, n_agents, a_tree.shape[1] // n_agents)
     return np.where(fixed, human, a_tree), human_carrier
 
 

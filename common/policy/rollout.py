@@ -33,15 +33,6 @@ _PARTIAL_BLOCK = "rollout: fixed_mask must fix whole carrier blocks (all of a ca
 _NONFINITE_HUMAN = "rollout: human_action is NaN/Inf in a fixed block"
 
 
-def carrier_fixed_mask(fixed_mask: np.ndarray, n_agents: int, act_dim: int) -> np.ndarray:
-    """[B, N*A] bool column mask -> [B, N] per-carrier mask; raises if a block is only partly fixed."""
-    blocks = fixed_mask.reshape(len(fixed_mask), n_agents, act_dim)
-    whole = blocks.all(-1)
-    if np.any(blocks.any(-1) != whole):
-        raise ValueError(_PARTIAL_BLOCK)
-    return whole
-
-
 def human_blocks(a_tree: np.ndarray, fixed: np.ndarray, human: np.ndarray, n_agents: int):
     """``(a_st, human_carrier)``: the human's measured action replaces the trees' in
     fixed blocks ([B,d], fixed and human broadcast to it), and which carrier blocks
