@@ -1,7 +1,7 @@
 """The numba fast path of the environment against its numpy references.
 
-``build_rows`` vs ``build_rows_reference``, ``grasp_strain`` vs its reference, ``WallSet`` queries vs their
-``*_reference`` methods, ``Route.project`` vs ``project_reference``, and a whole
+``build_rows``, ``grasp_strain``, the ``WallSet`` queries and ``Route.project`` vs their references
+in common/env/reference.py, and a whole
 ``BatchEnv`` rollout (with resets, drops and the human slot) against a twin env
 with those entry points patched to their references. ``BatchEnv.step`` now calls
 the fused kernels of ``common/env/kernels.py`` directly, so the rollout twin
@@ -14,7 +14,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from common.env import batch_env, geometry, physics, scenarios
+from common.env import batch_env, geometry, physics, reference, scenarios
 from common.env import safety as S
 from common.env.config import EnvConfig
 from common.env.geometry import WallSet
@@ -54,7 +54,7 @@ CONFIGS = [S.SafetyConfig(), S.SafetyConfig(profile="grasp"),
 def test_build_rows_matches_reference(name, seed, cfg, jitter):
     geom = _geometry(np.random.default_rng(seed), 12, jitter)
     walls = SCENARIOS[name].walls_array()
-    _assert_rows_equal(S.build_rows(geom, walls, cfg), S.build_rows_reference(geom, walls, cfg))
+    _assert_rows_equal(S.build_rows(geom, walls, cfg), reference.build_rows(geom, walls, cfg))
 
 
 def test_build_rows_ties_per_env_walls_and_edge_cases():
@@ -66,12 +66,12 @@ def test_build_rows_ties_per_env_walls_and_edge_cases():
     per_env = np.stack([walls + rng.normal(0, 0.1, walls.shape) * [1, 1, 0, 0, 1] for _ in range(5)])
     none = np.zeros((0, 5))
     for cfg in (S.SafetyConfig(), S.SafetyConfig(profile="grasp")):
-        _assert_rows_equal(S.build_rows(geom, dup, cfg), S.build_rows_reference(geom, dup, cfg))
-        _assert_rows_equal(S.build_rows(geom, per_env, cfg), S.build_rows_reference(geom, per_env, cfg))
-        _assert_rows_equal(S.build_rows(geom, none, cfg), S.build_rows_reference(geom, none, cfg))
+        _assert_rows_equal(S.build_rows(geom, dup, cfg), reference.build_rows(geom, dup, cfg))
+        _assert_rows_equal(S.build_rows(geom, per_env, cfg), reference.build_rows(geom, per_env, cfg))
+        _assert_rows_equal(S.build_rows(geom, none, cfg), reference.build_rows(geom, none, cfg))
     flat = S.SafetyGeometry(geom.carrier_xy, geom.carrier_yaw, geom.payload_xy, geom.payload_yaw,
                             PAYLOAD_POINTS_LOCAL, np.zeros((3, 2)), PAIR_REST)
-    for fn in (S.build_rows, S.build_rows_reference):
+    for fn in (S.build_rows, reference.build_rows):
         with pytest.raises(ValueError, match="coincide"):
             fn(flat, walls, cfg)
 
@@ -82,16 +82,16 @@ def test_wallset_and_route_kernels_match_reference(name, seed):
     rng = np.random.default_rng(seed)
     ws, route = WallSet(SCENARIOS[name].walls_array()), Route(SCENARIOS[name].route)
     pts = rng.uniform([-1.0, -3.0], [11.0, 3.0], (6, 8, 2))
-    np.testing.assert_array_equal(ws.signed_distance(pts), ws.signed_distance_reference(pts))
-    for a, b in zip(ws.nearest(pts), ws.nearest_reference(pts)):
+    np.testing.assert_array_equal(ws.signed_distance(pts), reference.signed_distance(ws, pts))
+    for a, b in zip(ws.nearest(pts), reference.nearest(ws, pts)):
         np.testing.assert_array_equal(a, b)
     yaw = rng.uniform(-4.0, 4.0, (6, 3, 4))
     dirs = np.stack([np.cos(yaw), np.sin(yaw)], -1)
     dirs[0, 0, :2] = [[1.0, 0.0], [0.0, -1.0]]  # axis-aligned rays hit the 1e-12 slab guard
     origin = np.broadcast_to(pts[:, :3, None, :], dirs.shape)
-    np.testing.assert_array_equal(ws.ray_distance(origin, dirs, 2.3), ws.ray_distance_reference(origin, dirs, 2.3))
+    np.testing.assert_array_equal(ws.ray_distance(origin, dirs, 2.3), reference.ray_distance(ws, origin, dirs, 2.3))
     s_prev = rng.uniform(-1.0, route.length + 1.0, 6)
-    np.testing.assert_array_equal(route.project(pts[:, 0], s_prev), route.project_reference(pts[:, 0], s_prev))
+    np.testing.assert_array_equal(route.project(pts[:, 0], s_prev), reference.route_project(route, pts[:, 0], s_prev))
 
 
 @pytest.fixture
@@ -100,12 +100,12 @@ def reference_env(monkeypatch):
     while the reference env is built and stepped)."""
 
     def patch():
-        monkeypatch.setattr(geometry.WallSet, "signed_distance", geometry.WallSet.signed_distance_reference)
-        monkeypatch.setattr(geometry.WallSet, "nearest", geometry.WallSet.nearest_reference)
-        monkeypatch.setattr(geometry.WallSet, "ray_distance", geometry.WallSet.ray_distance_reference)
-        monkeypatch.setattr(scenarios.Route, "project", scenarios.Route.project_reference)
-        monkeypatch.setattr(S, "build_rows", S.build_rows_reference)
-        monkeypatch.setattr(physics.TransportPhysics, "grasp_strain", physics.TransportPhysics.grasp_strain_reference)
+        monkeypatch.setattr(geometry.WallSet, "signed_distance", reference.signed_distance)
+        monkeypatch.setattr(geometry.WallSet, "nearest", reference.nearest)
+        monkeypatch.setattr(geometry.WallSet, "ray_distance", reference.ray_distance)
+        monkeypatch.setattr(scenarios.Route, "project", reference.route_project)
+        monkeypatch.setattr(S, "build_rows", reference.build_rows)
+        monkeypatch.setattr(physics.TransportPhysics, "grasp_strain", reference.grasp_strain)
 
     return patch
 

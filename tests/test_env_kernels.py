@@ -1,6 +1,6 @@
 """The compiled step of BatchEnv (common/env/kernels.py) against its numpy references.
 
-Every kernel equals the plain numpy function beside it in its owning module, on random
+Every kernel equals its plain numpy reference (common/env/reference.py), on random
 (hypothesis) and recorded states: the snapshot, observations and critic state, step outcome,
 margin barrier, tracker targets, resets, episode placement, start clearance, observation
 noise and episode sums. A whole BatchEnv rollout with every kernel swapped for its
@@ -14,7 +14,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from common.env import batch_env, observations, physics, task
+from common.env import batch_env, observations, physics, reference, task
 from common.env import safety as S
 from common.env.batch_env import BatchEnv
 from common.env.config import EnvConfig
@@ -81,12 +81,12 @@ def _check_snapshot_and_observe(env, rng, envs):
     fast, ref = Snapshot.empty(K), Snapshot.empty(K)
     args = (env.phys, env.scene, env.s_prev, env.goal_s, env.cfg)
     observations.snapshot(*args, fast, envs)
-    observations.snapshot_reference(*args, ref, envs)
+    reference.snapshot(*args, ref, envs)
     _assert_snapshots_equal(fast, ref)
     goal_xy, goal_yaw = rng.uniform(-1.0, 11.0, (K, 2)), rng.uniform(-4.0, 4.0, K)
     progress, time_left = rng.random(K), rng.random(K)
     outs = []
-    for fn in (observations.observe, observations.observe_reference):
+    for fn in (observations.observe, reference.observe):
         obs, state = np.full((K, 3, OBS_DIM), 7.0, np.float32), np.full((K, STATE_DIM), 7.0, np.float32)
         fn(fast, env.scene, goal_xy, goal_yaw, progress, time_left, env.cfg, envs, obs, state)
         outs.append((obs, state))
@@ -116,14 +116,14 @@ def test_kernels_match_reference_on_recorded_states(name, rows):
         geom = S.SafetyGeometry(snap.cxy, snap.cyaw, snap.pxy, snap.pyaw, PAYLOAD_POINTS_LOCAL, GRASP_LOCAL,
                                 PAIR_REST)
         fast, ref = S.build_rows(geom, env.walls_array, env.safety_cfg), \
-            S.build_rows_reference(geom, env.walls_array, env.safety_cfg)
+            reference.build_rows(geom, env.walls_array, env.safety_cfg)
         for a, b in zip(fast[:3], ref[:3]):
             np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
         for key in ("h", "entity", "wall"):
             np.testing.assert_allclose(fast[3][key], ref[3][key], rtol=0, atol=1e-12, err_msg=key)
         np.testing.assert_allclose(
             S.spec_barrier_min(snap.car_dist, snap.pay_dist, snap.cxy, PAIR_REST, env.safety_cfg),
-            S.spec_barrier_min_reference(snap.car_dist, snap.pay_dist, snap.cxy, PAIR_REST, env.safety_cfg),
+            reference.spec_barrier_min(snap.car_dist, snap.pay_dist, snap.cxy, PAIR_REST, env.safety_cfg),
             rtol=0, atol=1e-12)
 
 
@@ -131,7 +131,7 @@ def test_grasp_strain_matches_reference():
     rng = np.random.default_rng(2)
     env = _env()
     _random_state(env, rng, 0.2)
-    np.testing.assert_allclose(env.phys.grasp_strain(), env.phys.grasp_strain_reference(), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(env.phys.grasp_strain(), reference.grasp_strain(env.phys), rtol=0, atol=1e-12)
 
 
 # ----------------------------------------------------------------------------- outcome, margins, sums
@@ -159,7 +159,7 @@ def test_step_outcome_matches_reference(seed, max_steps):
     t = rng.integers(0, 2 * max_steps, K)
     goal_xy, goal_yaw = snap.pxy + rng.normal(0.0, 1.0, (K, 2)), rng.uniform(-4.0, 4.0, K)
     a = task.step_outcome(snap, s_old, t, max_steps, goal_xy, goal_yaw, cfg)
-    b = task.step_outcome_reference(snap, s_old, t, max_steps, goal_xy, goal_yaw, cfg)
+    b = reference.step_outcome(snap, s_old, t, max_steps, goal_xy, goal_yaw, cfg)
     for name in ("success", "drop", "terminated", "truncated", "collision"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
     np.testing.assert_allclose(a.reward, b.reward, rtol=0, atol=1e-12)
@@ -173,7 +173,7 @@ def test_spec_barrier_min_matches_reference(seed, profile, P):
     cfg = S.SafetyConfig(profile=profile)
     car, pay = rng.normal(0.5, 0.5, (K, 3)), rng.normal(0.5, 0.5, (K, P))
     cxy = GRASP_LOCAL[None] + rng.normal(0.0, 0.1, (K, 3, 2))
-    want = S.spec_barrier_min_reference(car, pay, cxy, PAIR_REST, cfg)
+    want = reference.spec_barrier_min(car, pay, cxy, PAIR_REST, cfg)
     np.testing.assert_allclose(S.spec_barrier_min(car, pay, cxy, PAIR_REST, cfg), want, rtol=0, atol=1e-12)
     model = S.SafetyModel(SCENARIOS["maze"].walls_array(), cfg, K)   # the env's prepared path
     np.testing.assert_allclose(model.barrier_min(car, pay, cxy, PAIR_REST), want, rtol=0, atol=1e-12)
@@ -186,9 +186,9 @@ def test_episode_sums_match_reference():
         env.reset()
     for _ in range(3):
         snap = _random_snapshot(rng)
-        o = task.step_outcome_reference(snap, snap.s, np.zeros(K, np.int64), 10, snap.pxy, snap.pyaw, envs[0].cfg)
+        o = reference.step_outcome(snap, snap.s, np.zeros(K, np.int64), 10, snap.pxy, snap.pyaw, envs[0].cfg)
         margin = rng.random(K) < 0.5
-        for env, fn in zip(envs, (BatchEnv._accumulate, BatchEnv._accumulate_reference)):
+        for env, fn in zip(envs, (BatchEnv._accumulate, reference.accumulate)):
             env.snap = snap
             fn(env, o, margin)
     np.testing.assert_allclose(envs[0]._acc_all, envs[1]._acc_all, rtol=0, atol=1e-12)
@@ -205,14 +205,15 @@ def test_tracker_targets_and_reset_match_reference(seed):
     envs = np.sort(rng.choice(K, 3, replace=False))
     xy, yaw, pose = rng.uniform(0.0, 5.0, (3, 2)), rng.uniform(-4.0, 4.0, 3), rng.normal(0.0, 2.0, (3, 3, 3))
     fast.phys.reset(envs, xy, yaw, pose)
-    ref.phys.reset_reference(envs, xy, yaw, pose)
+    reference.physics_reset(ref.phys, envs, xy, yaw, pose)
     np.testing.assert_allclose(fast.phys.batch.state, ref.phys.batch.state, rtol=0, atol=1e-15)
     qpos = rng.normal(0.0, 2.0, fast.phys.qpos.shape)
     ctrl = qpos[:, fast.phys.carrier_qadr.reshape(-1)] + rng.normal(0.0, 0.05, (K, 9))
     for phys in (fast.phys, ref.phys):
         phys.qpos[:], phys._ctrl[:] = qpos, ctrl
     actions = rng.uniform(-1.5, 1.5, (K, 9))   # beyond the box: the targets clip
-    np.testing.assert_allclose(fast.phys.targets(actions), ref.phys.targets_reference(actions), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(fast.phys.targets(actions), reference.physics_targets(ref.phys, actions),
+                               rtol=0, atol=1e-12)
 
 
 @HYP
@@ -226,11 +227,11 @@ def test_episode_placement_and_start_clearance_match_reference(name, seed):
     for env in (fast, ref):
         env.reset()   # every env in a layout of its own
         env._start[:], env.goal_s[:] = start, goal_s
-    np.testing.assert_allclose(fast._place_episodes(envs), ref._place_episodes_reference(envs), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(fast._place_episodes(envs), reference.place_episodes(ref, envs), rtol=0, atol=1e-12)
     np.testing.assert_allclose(fast.goal_xy, ref.goal_xy, rtol=0, atol=0)
     np.testing.assert_allclose(fast.goal_yaw, ref.goal_yaw, rtol=0, atol=0)
     for k, (x, y, yaw) in enumerate(start):
-        assert fast.start_clearance((x, y), yaw, k) == pytest.approx(ref.start_clearance_reference((x, y), yaw, k),
+        assert fast.start_clearance((x, y), yaw, k) == pytest.approx(reference.start_clearance(ref, (x, y), yaw, k),
                                                                     abs=1e-12)
 
 
@@ -242,7 +243,7 @@ def test_observation_noise_matches_reference_across_refills():
         envs = np.array([1, 4]) if t % 2 else np.arange(K)
         a, b = np.zeros((K, 3, OBS_DIM), np.float32), np.zeros((K, 3, OBS_DIM), np.float32)
         fast._add_noise(a, envs)
-        ref._add_noise_reference(b, envs)
+        reference.add_noise(ref, b, envs)
         np.testing.assert_array_equal(a, b)
     # the same stream as one draw per step: env 0's draws are its RNG's first normals
     env = _env()
@@ -256,7 +257,7 @@ def test_observation_noise_matches_reference_across_refills():
 # ----------------------------------------------------------------------------- the whole env
 
 class _ReferenceSafetyModel:
-    """``safety.SafetyModel`` computed by ``build_rows_reference`` and ``spec_barrier_min_reference``."""
+    """``safety.SafetyModel`` computed by ``reference.build_rows`` and ``reference.spec_barrier_min``."""
 
     def __init__(self, walls, cfg, num_envs):
         self.walls, self.cfg = np.array(walls, dtype=np.float64), cfg   # its own copy: set_walls must reach it
@@ -266,24 +267,26 @@ class _ReferenceSafetyModel:
 
     def rows(self, carrier_xy, carrier_yaw, payload_xy, payload_yaw, points, grasps, pair_rest):
         geom = S.SafetyGeometry(carrier_xy, carrier_yaw, payload_xy, payload_yaw, points, grasps, pair_rest)
-        C, c, mask, info = S.build_rows_reference(geom, self.walls, self.cfg)
+        C, c, mask, info = reference.build_rows(geom, self.walls, self.cfg)
         return C, c, mask, info["h"], info["entity"], info["wall"]
 
     def barrier_min(self, carrier_sd, payload_sd, carrier_xy, pair_rest):
-        return S.spec_barrier_min_reference(carrier_sd, payload_sd, carrier_xy, pair_rest, self.cfg)
+        return reference.spec_barrier_min(carrier_sd, payload_sd, carrier_xy, pair_rest, self.cfg)
 
 
 def _use_references(monkeypatch):
     """Swap every kernel of BatchEnv's step for its numpy reference."""
-    monkeypatch.setattr(observations, "snapshot", observations.snapshot_reference)
-    monkeypatch.setattr(observations, "observe", observations.observe_reference)
-    monkeypatch.setattr(task, "step_outcome", task.step_outcome_reference)
+    monkeypatch.setattr(observations, "snapshot", reference.snapshot)
+    monkeypatch.setattr(observations, "observe", reference.observe)
+    monkeypatch.setattr(task, "step_outcome", reference.step_outcome)
     monkeypatch.setattr(S, "SafetyModel", _ReferenceSafetyModel)
-    monkeypatch.setattr(physics.TransportPhysics, "reset", physics.TransportPhysics.reset_reference)
-    monkeypatch.setattr(physics.TransportPhysics, "targets", physics.TransportPhysics.targets_reference)
-    monkeypatch.setattr(Route, "project", Route.project_reference)
-    for name in ("start_clearance", "_place_episodes", "_add_noise", "_accumulate"):
-        monkeypatch.setattr(BatchEnv, name, getattr(BatchEnv, name + "_reference"))
+    monkeypatch.setattr(physics.TransportPhysics, "reset", reference.physics_reset)
+    monkeypatch.setattr(physics.TransportPhysics, "targets", reference.physics_targets)
+    monkeypatch.setattr(Route, "project", reference.route_project)
+    monkeypatch.setattr(BatchEnv, "start_clearance", reference.start_clearance)
+    monkeypatch.setattr(BatchEnv, "_place_episodes", reference.place_episodes)
+    monkeypatch.setattr(BatchEnv, "_add_noise", reference.add_noise)
+    monkeypatch.setattr(BatchEnv, "_accumulate", reference.accumulate)
 
 
 @pytest.mark.parametrize("name,kw", [

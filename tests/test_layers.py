@@ -1,7 +1,8 @@
 """The layering of docs/architecture.md, as import-linter contracts in
 pyproject.toml: app (sage) > deploy > services > common, and the layers
 inside common, services and deploy. The second test plants a forbidden import
-(and a torch import in the torch-free registry) in a copy of the tree and checks
+(and a torch import in the torch-free registry, and a production import of a kernel's numpy
+reference) in a copy of the tree and checks
 that the contracts catch them."""
 from __future__ import annotations
 
@@ -36,12 +37,16 @@ def test_a_forbidden_import_breaks_a_contract(tmp_path):
     wire.write_text(wire.read_text() + "\nfrom services.config import TrainConfig  # noqa: E402,F401\n")
     registry = tmp_path / "common" / "algos" / "registry.py"   # indirectly, through another module
     registry.write_text(registry.read_text() + "\nfrom common.algos import critic  # noqa: E402,F401\n")
+    rollout = tmp_path / "common" / "policy" / "rollout.py"   # a reference is a test oracle, not a code path
+    rollout.write_text(rollout.read_text() + "\nfrom common.policy import reference  # noqa: E402,F401\n")
     proc = _lint(tmp_path)
     assert proc.returncode != 0
     assert "app > deploy > services > common BROKEN" in proc.stdout
     assert "common.wire -> services.config" in proc.stdout
     assert "torch-free: the method registry and the learner config BROKEN" in proc.stdout
     assert "common.algos.registry -> common.algos.critic" in proc.stdout
+    assert "kernel references: imported by tests only BROKEN" in proc.stdout
+    assert "common.policy.rollout -> common.policy.reference" in proc.stdout
 
 
 def test_every_module_has_a_tier():

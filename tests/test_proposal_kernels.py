@@ -1,5 +1,5 @@
 """The actor's proposal kernels (common/policy/proposal_kernels.py) against their
-numpy references: the squashed-Gaussian sample and its log-density, and the
+numpy references (common/policy/reference.py): the squashed-Gaussian sample and its log-density, and the
 human blocks, on the same draws, with and without human carriers, and every
 error the references raise."""
 import numpy as np
@@ -7,13 +7,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from common.policy.proposal import (
-    proposal_log_prob_np,
-    proposal_log_prob_np_reference,
-    proposal_sample_np,
-    proposal_sample_np_reference,
-)
-from common.policy.rollout import human_blocks, human_blocks_reference
+from common.policy import reference
+from common.policy.proposal import proposal_log_prob_np, proposal_sample_np
+from common.policy.rollout import human_blocks
 
 F32_STEP = float(np.spacing(np.float32(1.0)))   # a float32 ulp near |a| = 1, the largest there is
 
@@ -41,7 +37,7 @@ def test_sample_equals_reference_on_the_same_draws(seed):
     center[:5] = [[1.0] * 9, [-1.0] * 9, [0.999] * 9, [2.0] * 9, [0.0] * 9]   # faces, outside, middle
     log_std = rng.uniform(-2.0, 0.7, 9)
     got = proposal_sample_np(center, log_std, np.random.default_rng(seed + 10))
-    want = proposal_sample_np_reference(center, log_std, np.random.default_rng(seed + 10))
+    want = reference.proposal_sample(center, log_std, np.random.default_rng(seed + 10))
     _assert_samples_match(got, want)
     a = got[0]
     assert np.array_equal(a, a.astype(np.float32).astype(np.float64))
@@ -56,7 +52,7 @@ def test_sample_with_per_sample_log_std_and_human_carriers():
     human_carrier = _human_carrier(rng, B)
     human = rng.uniform(-1, 1, (B, 9))
     got = proposal_sample_np(center, log_std, np.random.default_rng(1), human_carrier=human_carrier, human_action=human)
-    want = proposal_sample_np_reference(center, log_std, np.random.default_rng(1), human_carrier=human_carrier,
+    want = reference.proposal_sample(center, log_std, np.random.default_rng(1), human_carrier=human_carrier,
                                         human_action=human)
     _assert_samples_match(got, want)
     fixed = np.repeat(human_carrier, 3, axis=1)
@@ -72,7 +68,7 @@ def test_log_prob_equals_reference(B, log_std_level, spread, seed):
     log_std = log_std_level + rng.uniform(-0.5, 0.5, 9)
     a = np.clip(np.tanh(rng.normal(0.0, 2.0, (B, 9))), -1 + 1e-6, 1 - 1e-6)
     np.testing.assert_allclose(proposal_log_prob_np(center, log_std, a),
-                               proposal_log_prob_np_reference(center, log_std, a), rtol=1e-12, atol=1e-10)
+                               reference.proposal_log_prob(center, log_std, a), rtol=1e-12, atol=1e-10)
 
 
 def test_log_prob_of_the_kernels_sample_is_its_own():
@@ -88,7 +84,7 @@ def test_log_prob_nan_center_propagates_like_the_reference():
     center = np.zeros((2, 9))
     center[1, 4] = np.nan
     a = np.full((2, 9), 0.2)
-    got, want = proposal_log_prob_np(center, np.zeros(9), a), proposal_log_prob_np_reference(center, np.zeros(9), a)
+    got, want = proposal_log_prob_np(center, np.zeros(9), a), reference.proposal_log_prob(center, np.zeros(9), a)
     np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
     assert np.isnan(got[1, 1]) and np.isfinite(got[0]).all()
 
@@ -97,7 +93,7 @@ def test_log_prob_nan_center_propagates_like_the_reference():
 def test_log_prob_refuses_outside_the_box_like_the_reference(bad):
     a = np.zeros((3, 9))
     a[2, 7] = bad
-    for fn in (proposal_log_prob_np, proposal_log_prob_np_reference):
+    for fn in (proposal_log_prob_np, reference.proposal_log_prob):
         with pytest.raises(ValueError, match=r"\|a\| < 1"):
             fn(np.zeros((3, 9)), np.zeros(9), a)
 
@@ -106,7 +102,7 @@ def test_log_prob_refuses_outside_the_box_like_the_reference(bad):
 def test_sample_refuses_nonfinite_inputs_like_the_reference(where):
     center, log_std = np.zeros((4, 9)), np.zeros(9)
     (center[3] if where == "center" else log_std)[5] = np.nan
-    for fn in (proposal_sample_np, proposal_sample_np_reference):
+    for fn in (proposal_sample_np, reference.proposal_sample):
         with pytest.raises(ValueError, match="finite"):
             fn(center, log_std, np.random.default_rng(0))
 
@@ -132,7 +128,7 @@ def test_human_blocks_equal_reference(seed):
     fixed = np.repeat(_human_carrier(rng, B), 3, axis=1)
     for f, h in ((fixed, human), (np.broadcast_to(fixed[0], (B, 9)), np.broadcast_to(human[0], (B, 9)))):
         a_st, carrier = human_blocks(a_tree, f, h, 3)
-        a_ref, carrier_ref = human_blocks_reference(a_tree, f, h, 3)
+        a_ref, carrier_ref = reference.human_blocks(a_tree, f, h, 3)
         np.testing.assert_array_equal(a_st, a_ref)
         np.testing.assert_array_equal(carrier, carrier_ref)
 
@@ -145,7 +141,7 @@ def test_human_blocks_errors_like_the_reference():
     bad[1, 6] = np.inf
     fixed = np.zeros((4, 9), bool)
     fixed[1, 6:9] = True
-    for fn in (human_blocks, human_blocks_reference):
+    for fn in (human_blocks, reference.human_blocks):
         with pytest.raises(ValueError, match="whole carrier blocks"):
             fn(a_tree, partial, human, 3)
         with pytest.raises(ValueError, match="human_action"):

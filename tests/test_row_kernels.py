@@ -1,6 +1,6 @@
 """The compiled row kernels (common/shield/row_kernels.py) equal their numpy
-references: row pruning (prune.drop_box_redundant_rows vs ..._reference) and
-the actor's answer check (verify.verify_answer vs verify_answer_reference),
+references: row pruning (prune.drop_box_redundant_rows vs reference.drop_box_redundant_rows) and
+the actor's answer check (verify.verify_answer vs its numpy path verify_answer_fallback),
 on random problems of every row kind, real env rows and every kind of bad answer."""
 import sys
 from pathlib import Path
@@ -15,16 +15,17 @@ sys.path.insert(0, str(Path(__file__).parent))
 from test_shield_prune import _env_rows, mixed_problems, pruning_problem  # noqa: E402
 
 from common.safety_rows import SafetyRows  # noqa: E402
-from common.shield.prune import drop_box_redundant_rows, drop_box_redundant_rows_reference  # noqa: E402
+from common.shield import reference  # noqa: E402
+from common.shield.prune import drop_box_redundant_rows  # noqa: E402
 from common.shield.qp import STATUS_INFEASIBLE, STATUS_MAX_ITER, STATUS_OPTIMAL, shield_actions  # noqa: E402
 from common.shield.row_kernels import check_answer_kernel  # noqa: E402
-from common.shield.verify import verify_answer, verify_answer_reference  # noqa: E402
+from common.shield.verify import verify_answer, verify_answer_fallback  # noqa: E402
 
 D = 9
 
 
 def assert_same_pruning(a, rows):
-    got, ref = drop_box_redundant_rows(a, rows), drop_box_redundant_rows_reference(a, rows)
+    got, ref = drop_box_redundant_rows(a, rows), reference.drop_box_redundant_rows(a, rows)
     for name in ("C", "c", "row_mask", "fixed_mask"):
         x, y = getattr(got, name), getattr(ref, name)
         assert x.dtype == y.dtype and x.shape == y.shape, name
@@ -96,7 +97,7 @@ def test_answer_check_kernel_equals_reference(seed):
     verdicts = {}
     for name, (x, s) in _answers(a, rows, rng):
         got = verify_answer(a, rows, x, s)
-        assert got == verify_answer_reference(a, rows, x, s), name
+        assert got == verify_answer_fallback(a, rows, x, s), name
         verdicts[name] = got
     assert verdicts["good"] is None and verdicts["box"] == "box" and verdicts["fixed"] == "fixed_block"
     assert verdicts["maxiter"] == verdicts["unknown status"] == "status" and verdicts["nan"] == "nonfinite"
@@ -129,4 +130,4 @@ def test_answer_check_kernel_equals_reference_hypothesis(prob, seed, jitter):
     x = np.asarray(res.a_exec, np.float64) + scale * jitter[None]
     x = np.where(np.broadcast_to(rows.fixed_mask, a.shape), a, x)
     s = np.asarray(res.status, np.int32) if rng.random() < 0.7 else rng.integers(0, 3, 1).astype(np.int32)
-    assert verify_answer(a, rows, x, s) == verify_answer_reference(a, rows, x, s)
+    assert verify_answer(a, rows, x, s) == verify_answer_fallback(a, rows, x, s)

@@ -11,6 +11,7 @@ import math
 import numpy as np
 import pytest
 
+from common.env import reference
 from common.env import safety as S
 from common.env.batch_env import BatchEnv
 from common.env.config import EnvConfig
@@ -31,8 +32,8 @@ def team(carrier_offset=None):
 
 
 def rows_both_paths(geom, walls, cfg):
-    """build_rows (numba) after checking it equals build_rows_reference (numpy)."""
-    fast, ref = S.build_rows(geom, walls, cfg), S.build_rows_reference(geom, walls, cfg)
+    """build_rows (numba) after checking it equals reference.build_rows (numpy)."""
+    fast, ref = S.build_rows(geom, walls, cfg), reference.build_rows(geom, walls, cfg)
     for a, b in zip(fast[:3], ref[:3]):
         assert a.shape == b.shape
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)

@@ -1,5 +1,5 @@
 """The compiled SAIL Newton loop (common/policy/sail_kernels.py) against its numpy reference
-``sail_project_np_reference`` (common/policy/sail.py).
+``reference.sail_project`` (common/policy/reference.py).
 
 Both see the same validated, fixed-absorbed and normalized inputs; the kernel must give the
 reference's iterate (to rounding: the reference's matrix products go through BLAS) on
@@ -18,10 +18,8 @@ from hypothesis.extra import numpy as hnp
 
 from common.env.batch_env import BatchEnv
 from common.env.config import EnvConfig
-from common.policy import sail_kernels
-from common.policy.sail import (SailConfig, absorb_fixed, normalize_rows, sail_implicit_step_np,
-                                sail_implicit_step_np_reference, sail_project_np,
-                                sail_project_np_reference)
+from common.policy import reference, sail_kernels
+from common.policy.sail import SailConfig, absorb_fixed, normalize_rows, sail_implicit_step_np, sail_project_np
 
 D = 9
 HYP = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -29,7 +27,7 @@ KAPPAS = [0.0, 0.5, 1.0, 10.0, 100.0, 1000.0]
 
 
 def _both(*args, **kw):
-    return sail_project_np(*args, **kw), sail_project_np_reference(*args, **kw)
+    return sail_project_np(*args, **kw), reference.sail_project(*args, **kw)
 
 
 def _tol(x, a):
@@ -180,7 +178,7 @@ def test_kappa_and_inputs_broadcast_and_validate_like_reference():
     assert np.array_equal(x1, x2)
     for bad in (dict(kappa=-1.0), dict(n_newton=-1), dict(damping="bogus")):
         kw = dict(kappa=1.0) | bad
-        for fn in (sail_project_np, sail_project_np_reference):
+        for fn in (sail_project_np, reference.sail_project):
             with pytest.raises(ValueError):
                 fn(a, C, c, mask, **kw)
 
@@ -254,7 +252,7 @@ def test_implicit_step_kernel_matches_numpy_inverse(seed, kappa):
     human = rng.uniform(-0.5, 0.5, (48, D))
     x, H_inv, offset = sail_implicit_step_np(a, C, c, mask, kappa, fixed, human)
     assert np.array_equal(x, sail_project_np(a, C, c, mask, kappa, fixed_mask=fixed, fixed_action=human))
-    H_ref, off_ref = sail_implicit_step_np_reference(x, C, c, mask, kappa, fixed, human)
+    H_ref, off_ref = reference.sail_implicit_step(x, C, c, mask, kappa, fixed, human)
     np.testing.assert_allclose(H_inv, H_ref, rtol=0, atol=1e-12)
     np.testing.assert_allclose(offset, off_ref, rtol=0, atol=1e-12 * max(1.0, kappa))
     assert np.array_equal(H_inv[:6], np.broadcast_to(np.eye(D), (6, D, D)))

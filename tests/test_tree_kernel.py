@@ -1,5 +1,5 @@
 """The compiled team forward (common/policy/tree_kernels.py) against its numpy
-reference (team_forward_np_reference): same routes, same leaf actions to rounding."""
+reference (common/policy/reference.py team_forward): same routes, same leaf actions to rounding."""
 import numpy as np
 import pytest
 import torch
@@ -12,8 +12,8 @@ from common.policy.tree import (
     TreeConfig,
     ValidatedParams,
     team_forward_np,
-    team_forward_np_reference,
 )
+from common.policy import reference
 from common.policy.tree_torch import TeamPolicy
 
 
@@ -28,7 +28,7 @@ def _params(depth, obs_dim, seed, split_k=0, n_agents=3):
 
 def _agree(params, obs):
     a, leaf, nodes, sides = team_forward_np(params, obs)
-    ra, rleaf, rnodes, rsides = team_forward_np_reference(params, obs)
+    ra, rleaf, rnodes, rsides = reference.team_forward(params, obs)
     np.testing.assert_array_equal(leaf, rleaf)
     np.testing.assert_array_equal(nodes, rnodes)
     np.testing.assert_array_equal(sides, rsides)

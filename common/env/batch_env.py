@@ -14,7 +14,7 @@ call each for the snapshot, the outcome, the observations and the safety rows
 (common/env/kernels.py), so per-env Python is left only where an env's own
 random streams are drawn (episode starts, observation noise, the human).
 The kernels are reached through their modules (``observations.snapshot``,
-``task.step_outcome``, ...), which the tests swap for the numpy references.
+``task.step_outcome``, ...), which the tests swap for the numpy references (common/env/reference.py).
 """
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ import numpy as np
 
 from common.env import kernels, observations, task
 from common.env.config import EnvConfig
-from common.env.geometry import from_frame, wrap
+from common.env.geometry import wrap
 from common.env.metrics import margin_violation
 from common.env.layout import (CARRIER_RADIUS, CARRY_HEIGHT, FACING, GRASP_LOCAL, PAIR_REST, PAYLOAD_MASS,
                                PAYLOAD_POINTS_LOCAL)
@@ -132,17 +132,9 @@ class BatchEnv:
     def start_clearance(self, xy, yaw: float, env: int = 0) -> float:
         """Formation clearance (payload boundary points, carrier discs; as ``Snapshot.clearance``)
         of a start pose with the carriers on their grasps, in env ``env``'s walls (a kernel;
-        :meth:`start_clearance_reference`)."""
+        ``reference.start_clearance``)."""
         return float(kernels.pose_clearance(float(xy[0]), float(xy[1]), float(yaw), PAYLOAD_POINTS_LOCAL,
                                             GRASP_LOCAL, self.scene.tables[env], CARRIER_RADIUS))
-
-    def start_clearance_reference(self, xy, yaw: float, env: int = 0) -> float:
-        """Numpy :meth:`start_clearance`."""
-        walls = self.scene.wallsets[env]
-        pts = xy + from_frame(PAYLOAD_POINTS_LOCAL, yaw)
-        cxy = xy + from_frame(GRASP_LOCAL, yaw)
-        return float(min(walls.signed_distance_reference(pts).min(),
-                         walls.signed_distance_reference(cxy).min() - CARRIER_RADIUS))
 
     def _draw_start(self, rng, k: int):
         """Start pose uniform in the scenario box x start_spread around env k's route start, redrawn
@@ -208,22 +200,11 @@ class BatchEnv:
     def _place_episodes(self, envs):
         """Goal poses (``goal_xy``, ``goal_yaw`` of envs) of the drawn episodes and their carrier
         poses [n,3,3] on the grasps of the start pose, in one kernel call;
-        :meth:`_place_episodes_reference` is the numpy computation."""
+        ``reference.place_episodes`` is the numpy computation."""
         sc = self.scene
         carriers = np.empty((len(envs), N_CARRIERS, 3))
         kernels.place_episodes(envs, self._start, self.goal_s, sc.route_points, sc.route_heading, sc.route_n,
                                sc.route_ds, GRASP_LOCAL, FACING, self.goal_xy, self.goal_yaw, carriers)
-        return carriers
-
-    def _place_episodes_reference(self, envs):
-        """Numpy :meth:`_place_episodes`."""
-        start = self._start[envs]
-        xy, yaw = start[:, :2], start[:, 2]
-        for k in envs:
-            self.goal_xy[k], self.goal_yaw[k] = self.scene.routes[k].pose(self.goal_s[k])
-        carriers = np.empty((len(envs), N_CARRIERS, 3))
-        carriers[..., :2] = xy[:, None] + from_frame(GRASP_LOCAL, yaw[:, None])
-        carriers[..., 2] = yaw[:, None] + FACING
         return carriers
 
     def reset(self) -> dict:
@@ -261,18 +242,10 @@ class BatchEnv:
 
     def _add_noise(self, obs, envs):
         """Add envs' next observation noise draws (if any; each env's own stream) to rows ``envs``
-        of obs [K,3,OBS_DIM] (a kernel; :meth:`_add_noise_reference`)."""
+        of obs [K,3,OBS_DIM] (a kernel; ``reference.add_noise``)."""
         if self._obs_noise_std is not None:
             self._refill_noise(envs)
             kernels.add_noise(envs, self._noise_block, self._noise_used, self._obs_noise_std, obs)
-
-    def _add_noise_reference(self, obs, envs):
-        """Numpy :meth:`_add_noise`."""
-        if self._obs_noise_std is not None:
-            self._refill_noise(envs)
-            used = self._noise_used
-            obs[envs] += self._noise_block[envs, used[envs]] * self._obs_noise_std
-            used[envs] += 1
 
     def _refill_noise(self, envs):
         """Draw the next NOISE_BLOCK noise draws of envs whose block is used up."""
@@ -307,21 +280,10 @@ class BatchEnv:
 
     def _accumulate(self, o, margin_violation):
         """Add this step to the episode sums (``_acc``, ``_min_clear``), in one kernel call;
-        :meth:`_accumulate_reference` is the numpy computation."""
+        ``reference.accumulate`` is the numpy computation."""
         snap = self.snap
         kernels.accumulate_episodes(self._acc_all, self._min_clear, o.reward, o.collision, margin_violation,
                                     snap.tilt, o.heading_error, snap.pz, snap.clearance, CARRY_HEIGHT)
-
-    def _accumulate_reference(self, o, margin_violation):
-        """Numpy :meth:`_accumulate`."""
-        acc, snap = self._acc, self.snap
-        acc["ret"] += o.reward
-        acc["col"] += o.collision
-        acc["margin"] += margin_violation
-        acc["tilt"] += np.degrees(snap.tilt)
-        acc["head"] += o.heading_error
-        acc["height"] += np.abs(snap.pz - CARRY_HEIGHT)
-        np.minimum(self._min_clear, snap.clearance, out=self._min_clear)
 
     # --- step ------------------------------------------------------------------------
     def step(self, actions) -> dict:

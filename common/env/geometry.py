@@ -60,13 +60,8 @@ class WallSet:
         self.sin = np.sin(walls[:, 4])
         self.table = wall_table(walls)
 
-    def _local(self, pts):
-        d = pts[..., None, :] - self.center  # [...,W,2]
-        return np.stack([self.cos * d[..., 0] + self.sin * d[..., 1],
-                         -self.sin * d[..., 0] + self.cos * d[..., 1]], -1)
-
     # The public queries run numba kernels (common/env/kernels.py) on the flattened points;
-    # the *_reference methods are the same computations in numpy (tests compare the two).
+    # common/env/reference.py has the same computations in numpy (tests compare the two).
     def _flat(self, pts):
         pts = np.asarray(pts, dtype=np.float64)
         return np.ascontiguousarray(pts.reshape(-1, 2)), pts.shape[:-1]
@@ -99,34 +94,3 @@ class WallSet:
         out = np.empty(len(flat_o))
         ray_distances(flat_o, flat_d, self.table, float(max_dist), out)
         return out.reshape(lead)
-
-    def signed_distance_reference(self, pts):
-        q = np.abs(self._local(pts)) - self.half
-        outside = np.linalg.norm(np.maximum(q, 0.0), axis=-1)
-        inside = np.minimum(np.max(q, axis=-1), 0.0)
-        return outside + inside
-
-    def nearest_reference(self, pts):
-        loc = self._local(pts)
-        clamped = np.clip(loc, -self.half, self.half)
-        d = self.signed_distance_reference(pts)
-        k = np.argmin(d, axis=-1)
-        delta_loc = np.take_along_axis(clamped - loc, k[..., None, None], axis=-2)[..., 0, :]
-        c, s = self.cos[k], self.sin[k]
-        vec = np.stack([c * delta_loc[..., 0] - s * delta_loc[..., 1],
-                        s * delta_loc[..., 0] + c * delta_loc[..., 1]], -1)
-        return np.take_along_axis(d, k[..., None], axis=-1)[..., 0], vec
-
-    def ray_distance_reference(self, origin, direction, max_dist: float):
-        lo = self._local(origin)
-        dl = np.stack([self.cos * direction[..., None, 0] + self.sin * direction[..., None, 1],
-                       -self.sin * direction[..., None, 0] + self.cos * direction[..., None, 1]], -1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            inv = 1.0 / np.where(np.abs(dl) < 1e-12, 1e-12, dl)
-            t1 = (-self.half - lo) * inv
-            t2 = (self.half - lo) * inv
-        tmin = np.max(np.minimum(t1, t2), axis=-1)
-        tmax = np.min(np.maximum(t1, t2), axis=-1)
-        hit = (tmax >= np.maximum(tmin, 0.0))
-        t = np.where(hit, np.maximum(tmin, 0.0), max_dist)
-        return np.minimum(np.min(t, axis=-1), max_dist)

@@ -1,13 +1,13 @@
 """Numba kernels of the environment's step (the hot path of ``BatchEnv.step``).
 
-Each kernel is a loop-over-envs version of a numpy reference that stays in the
-owning module: ``geometry.WallSet`` methods, ``scenarios.Route.project``,
-``physics.tracker_targets_reference`` and ``TransportPhysics.grasp_strain_reference`` /
-``reset_reference``, ``observations.snapshot_reference`` / ``observe_reference``,
-``task.step_outcome_reference``, ``safety.build_rows_reference`` /
-``spec_barrier_min_reference`` and the ``BatchEnv.*_reference`` methods (start clearance,
-episode placement, observation noise, episode sums); tests/test_env_fast.py and
-tests/test_env_kernels.py check them against those references. The arithmetic follows
+Each kernel is a loop-over-envs version of a numpy reference in common/env/reference.py
+(test oracles, not production code): ``reference.signed_distance`` / ``nearest`` /
+``ray_distance`` (``WallSet``), ``route_project`` (``Route.project``), ``tracker_targets``,
+``grasp_strain``, ``physics_reset`` (``TransportPhysics``), ``snapshot`` / ``observe``
+(``observations``), ``step_outcome`` (``task``), ``build_rows`` / ``spec_barrier_min``
+(``safety``) and ``start_clearance``, ``place_episodes``, ``add_noise``, ``accumulate``
+(``BatchEnv``); tests/test_env_fast.py and tests/test_env_kernels.py check them against
+those references. The arithmetic follows
 the references operation by operation (same products, same summation order, same
 tie-breaking: the first minimum wins, sorts are stable) so results agree to rounding
 (numpy's and libm's sin/cos/atan2 may differ in the last bit) and discrete choices
@@ -151,7 +151,7 @@ def ray_distances(origin, direction, tab, max_dist, out):
 
 @njit(cache=True, nogil=True)
 def pose_clearance(x, y, yaw, pts_local, grasp_local, tab, carrier_radius):
-    """``BatchEnv.start_clearance_reference``: formation clearance of the payload pose ``(x, y, yaw)``
+    """``reference.start_clearance``: formation clearance of the payload pose ``(x, y, yaw)``
     with the carriers on their grasps (payload boundary points, carrier discs vs the walls)."""
     c = math.cos(yaw)
     s = math.sin(yaw)
@@ -254,7 +254,7 @@ def _wall_normal(px, py, tab, w):
 @njit(cache=True, nogil=True)
 def _wall_rows(k, pts, B, tab, nw, widx, margin, take, budget, alpha, search_radius, row0,
                C, c, mask, h_out, ent_out, wall_out, sd_buf, near_h, near_w, cand_key, cand_idx):
-    """Wall rows of one kind for env ``k`` (see ``safety._wall_rows_reference``), written to rows
+    """Wall rows of one kind for env ``k`` (see ``reference._wall_rows``), written to rows
     ``row0:row0+budget`` of the outputs (which come zeroed: padding). ``pts [E,2]``, ``B [E,2,9]``;
     the walls are the first ``nw`` of ``tab``, wall ``widx[w]`` of the scene.
 
@@ -316,7 +316,7 @@ def safety_rows(carrier_xy, carrier_yaw, payload_xy, payload_yaw, pts_local, gra
                 tabs, max_step_xy, alpha, carrier_radius, payload_margin, grasp_tol, search_radius,
                 walls_per_carrier, walls_per_point, carrier_budget, payload_budget, formation_budget,
                 C, c, mask, h_out, ent_out, wall_out):
-    """``safety.build_rows_reference`` per env. ``tabs [Kw,6,W]``: wall tables, ``Kw`` 1 (shared) or K.
+    """``reference.build_rows`` per env. ``tabs [Kw,6,W]``: wall tables, ``Kw`` 1 (shared) or K.
     ``formation_budget`` is 6 (the ``"grasp"`` profile's formation rows, after the wall rows) or 0.
     Fills the outputs (padding: zero rows, masked, ``h = 0``, entity and wall -1; formation rows
     name their pair). Returns 0, or ``ROWS_NONFINITE`` if some env's state is not finite, ``ROWS_COINCIDE`` if some
@@ -468,7 +468,7 @@ def _grasp_strain(px, py, pz, w, ux, uy, uz, gx, gy, cx, cy, hand_z):
 
 @njit(cache=True, nogil=True)
 def grasp_strain(payload_pos, payload_quat, grasp_local, carrier_xy, hand_z, out):
-    """``TransportPhysics.grasp_strain_reference``: ``out [K,3]`` = 3-D distance from each carrier's
+    """``reference.grasp_strain``: ``out [K,3]`` = 3-D distance from each carrier's
     hand anchor ``(x, y, hand_z)`` to its grasp point ``pos + q ⊗ (g, 0)`` on the payload."""
     for k in range(payload_pos.shape[0]):
         for i in range(grasp_local.shape[0]):
@@ -481,7 +481,7 @@ def grasp_strain(payload_pos, payload_quat, grasp_local, carrier_xy, hand_z, out
 @njit(cache=True, nogil=True)
 def reset_states(envs, reset_row, state, qpos, ctrl, eq_active, payload_qadr, carrier_qadr, xy, yaw, pose,
                  carry_height):
-    """``TransportPhysics.reset_reference``: the state rows of envs ``envs`` become ``reset_row``
+    """``reference.physics_reset``: the state rows of envs ``envs`` become ``reset_row``
     (mj_resetData's state), then the payload at ``(xy[j], carry_height)`` with yaw ``yaw[j]``, the
     carriers and their targets at ``pose [n,9]``, grasps on (``qpos``, ``ctrl``, ``eq_active``: views
     of ``state``)."""
@@ -505,7 +505,7 @@ def reset_states(envs, reset_row, state, qpos, ctrl, eq_active, payload_qadr, ca
 
 @njit(cache=True, nogil=True)
 def tracker_targets(qpos, carrier_qadr, actions, max_step_xy, max_step_yaw, leash_xy, leash_yaw, ctrl):
-    """``physics.tracker_targets_reference`` in place: ``ctrl [K,9]`` (carrier i's x, y, yaw at
+    """``reference.tracker_targets`` in place: ``ctrl [K,9]`` (carrier i's x, y, yaw at
     ``3i..3i+2``) becomes the new tracker targets for actions ``[K,9]`` at the pose in ``qpos``."""
     for k in range(ctrl.shape[0]):
         for i in range(carrier_qadr.shape[0]):
@@ -540,7 +540,7 @@ def _route_index(s, ds, n):
 @njit(cache=True, nogil=True)
 def place_episodes(envs, start, goal_s, route_points, route_heading, route_n, route_ds, grasp_local, facing, goal_xy,
                    goal_yaw, carriers):
-    """``BatchEnv._place_episodes_reference``: rows ``envs`` of ``goal_xy``, ``goal_yaw`` (the route
+    """``reference.place_episodes``: rows ``envs`` of ``goal_xy``, ``goal_yaw`` (the route
     pose at ``goal_s``) and ``carriers [n,3,3]`` (envs' carriers on the grasps of ``start [K,3]``).
     Env k's route is the first ``route_n[k]`` samples of ``route_points[k]``, ``route_heading[k]``
     (``scene.SceneBatch``), ``route_ds[k]`` apart."""
@@ -565,7 +565,7 @@ def snapshot_rows(envs, qpos, qvel, contact, carrier_qadr, carrier_vadr, payload
                   lookahead, tabs, pts_local, grasp_local, hand_z, carrier_radius,
                   cxy, cyaw, cvel, pxy, pz, pyaw, tilt, pvel, strain, s_out, look_xy, look_yaw, route_yaw,
                   contact_out, clearance, pay_dist, pay_vec, car_dist):
-    """``observations.snapshot_reference`` for envs ``envs``, written to rows ``envs`` of the snapshot
+    """``reference.snapshot`` for envs ``envs``, written to rows ``envs`` of the snapshot
     fields (the arguments after ``carrier_radius``). Env k's scene (``scene.SceneBatch``): walls
     ``tabs[k]`` and route the first ``route_n[k]`` samples of ``route_points[k]`` (``route_s[k]``,
     ``route_heading[k]``, ``route_ds[k]`` apart); ``back``, ``route_width[k]``: ``Route.project``'s window."""
@@ -645,7 +645,7 @@ def observe_rows(envs, cxy, cyaw, cvel, pxy, pz, pyaw, tilt, pvel, strain, look_
                  pay_vec, goal_xy, goal_yaw, progress, time_left, human_slot, tabs, grasp_local, facing,
                  ray_angles, v_scale, w_scale, lookahead, drop_strain, carrier_radius, ray_max, carry_height,
                  obs, state):
-    """``observations.observe_reference`` for envs ``envs``: rows ``envs`` of ``obs [K,3,OBS_DIM]`` and
+    """``reference.observe`` for envs ``envs``: rows ``envs`` of ``obs [K,3,OBS_DIM]`` and
     ``state [K,STATE_DIM]`` (float32; computed in float64 in the references' order of operations).
     ``human_slot`` is -1 without a human; env k's walls are ``tabs[k]``."""
     W = tabs.shape[2]
@@ -755,7 +755,7 @@ def step_outcome_rows(strain, pxy, pyaw, route_yaw, s, contact, s_old, t, max_st
                       drop_strain, goal_pos_tol, goal_yaw_tol, max_step_xy, w_progress, w_heading, w_strain,
                       w_collision, w_drop, w_time, w_success, reward, success, drop, terminated, truncated,
                       heading_err):
-    """``task.step_outcome_reference`` for all K envs, into the [K] outputs (the arguments after ``w_success``)."""
+    """``reference.step_outcome`` for all K envs, into the [K] outputs (the arguments after ``w_success``)."""
     for k in range(strain.shape[0]):
         dr = max(strain[k, 0], strain[k, 1], strain[k, 2]) > drop_strain
         dx = pxy[k, 0] - goal_xy[k, 0]
@@ -779,7 +779,7 @@ def step_outcome_rows(strain, pxy, pyaw, route_yaw, s, contact, s_old, t, max_st
 @njit(cache=True, nogil=True)
 def accumulate_episodes(acc, min_clear, reward, collision, margin_violation, tilt, heading_err, pz, clearance,
                         carry_height):
-    """``BatchEnv._accumulate_reference``: add one step to the per-episode sums ``acc [6,K]``
+    """``reference.accumulate``: add one step to the per-episode sums ``acc [6,K]``
     (return, collision steps, margin-violation steps, tilt in degrees, heading error, height
     error) and the running minimum clearance."""
     for k in range(acc.shape[1]):
@@ -810,7 +810,7 @@ def add_noise(envs, block, used, std, obs):
 @njit(cache=True, nogil=True)
 def spec_barrier_min(carrier_sd, payload_sd, carrier_xy, pair_rest, carrier_radius, payload_margin, grasp_tol,
                      formation, out):
-    """``safety.spec_barrier_min_reference`` into ``out [K]``; ``formation``: include the pair band."""
+    """``reference.spec_barrier_min`` into ``out [K]``; ``formation``: include the pair band."""
     pair_i = (0, 0, 1)
     pair_k = (1, 2, 2)
     for k in range(out.shape[0]):

@@ -12,9 +12,9 @@ import numpy as np
 
 from common.env import kernels
 from common.env.config import EnvConfig
-from common.env.geometry import from_frame, to_frame, wrap
+from common.env.geometry import from_frame
 from common.env.layout import CARRIER_RADIUS, CARRY_HEIGHT, FACING, GRASP_LOCAL, PAYLOAD_POINTS_LOCAL
-from common.env.physics import TransportPhysics, quat_to_yaw_tilt
+from common.env.physics import TransportPhysics
 from common.env.scene import PROJECT_BACK, SceneBatch
 from common.spec import N_CARRIERS
 
@@ -141,7 +141,7 @@ class Snapshot:
 def snapshot(phys: TransportPhysics, scene: SceneBatch, s_prev, goal_s, cfg: EnvConfig, out: Snapshot, envs):
     """Fill rows ``envs`` (sorted indices) of ``out`` with the snapshot of those envs in their own
     layouts (``scene``; ``s_prev``, ``goal_s`` [K]: previous route projections and goal arc
-    lengths), in one kernel call; :func:`snapshot_reference` is the numpy computation."""
+    lengths), in one kernel call; ``reference.snapshot`` is the numpy computation."""
     kernels.snapshot_rows(
         envs, phys.qpos, phys.qvel, phys.contact, phys.carrier_qadr, phys.carrier_vadr, phys.payload_qadr,
         phys.payload_vadr, scene.route_points, scene.route_s, scene.route_heading, scene.route_n, scene.route_ds,
@@ -149,32 +149,6 @@ def snapshot(phys: TransportPhysics, scene: SceneBatch, s_prev, goal_s, cfg: Env
         GRASP_LOCAL, CARRY_HEIGHT, CARRIER_RADIUS, out.cxy, out.cyaw, out.cvel, out.pxy, out.pz, out.pyaw, out.tilt,
         out.pvel, out.strain, out.s, out.look_xy, out.look_yaw, out.route_yaw, out.contact, out.clearance,
         out.pay_dist, out.pay_vec, out.car_dist)
-
-
-def snapshot_reference(phys: TransportPhysics, scene: SceneBatch, s_prev, goal_s, cfg: EnvConfig, out: Snapshot,
-                       envs):
-    """Numpy :func:`snapshot` (with the numpy references of the geometry queries), env by env."""
-    strain = phys.grasp_strain_reference()
-    for k in np.atleast_1d(envs):
-        route, walls = scene.routes[k], scene.wallsets[k]
-        cp = phys.carrier_pose[[k]]
-        pos = phys.payload_pos[[k]]
-        yaw, tilt = quat_to_yaw_tilt(phys.payload_quat[[k]])
-        pxy = pos[:, :2].copy()
-        s = route.project_reference(pxy, s_prev[[k]])
-        s_look = np.minimum(s + cfg.lookahead, goal_s[[k]])
-        look_xy, look_yaw = route.pose(s_look)
-        _, route_yaw = route.pose(s)
-        pts = pxy[:, None, :] + from_frame(PAYLOAD_POINTS_LOCAL[None], yaw[:, None])
-        pay_dist, pay_vec = walls.nearest_reference(pts)
-        car_dist = np.min(walls.signed_distance_reference(cp[..., :2]), axis=-1, initial=np.inf)
-        d_car = car_dist.min(axis=-1) - CARRIER_RADIUS
-        out.put([k], Snapshot(
-            cxy=cp[..., :2].copy(), cyaw=cp[..., 2].copy(), cvel=phys.carrier_vel[[k]], pxy=pxy,
-            pz=pos[:, 2].copy(), pyaw=yaw, tilt=tilt, pvel=phys.payload_vel[[k]], strain=strain[[k]], s=s,
-            look_xy=look_xy, look_yaw=look_yaw, route_yaw=route_yaw, contact=phys.contact[[k]].copy(),
-            clearance=np.minimum(pay_dist.min(axis=1), d_car), pay_dist=pay_dist, pay_vec=pay_vec, car_dist=car_dist,
-        ))
 
 
 def slot_targets(snap: Snapshot):
@@ -187,7 +161,7 @@ def slot_targets(snap: Snapshot):
 def observe(snap: Snapshot, scene: SceneBatch, goal_xy, goal_yaw, progress, time_left, cfg: EnvConfig, envs, obs, state):
     """Rows ``envs`` of the per-carrier observations ``obs [K,3,OBS_DIM]`` (order of
     OBS_FEATURE_NAMES) and the critic's state ``state [K,STATE_DIM]`` (both float32, noise-free),
-    in one kernel call; ``goal_*``, ``progress``, ``time_left`` are [K]. :func:`observe_reference`
+    in one kernel call; ``goal_*``, ``progress``, ``time_left`` are [K]. ``reference.observe``
     is the numpy computation."""
     human = -1 if cfg.human_slot is None else int(cfg.human_slot)
     kernels.observe_rows(
@@ -198,104 +172,4 @@ def observe(snap: Snapshot, scene: SceneBatch, goal_xy, goal_yaw, progress, time
         CARRY_HEIGHT, obs, state)
 
 
-def observe_reference(snap: Snapshot, scene: SceneBatch, goal_xy, goal_yaw, progress, time_left, cfg: EnvConfig,
-                      envs, obs, state):
-    """Numpy :func:`observe`, env by env (each in its own walls)."""
-    for k in np.atleast_1d(envs):
-        e = [k]
-        sub = snap.take(e)
-        o = observations_reference(sub, scene.wallsets[k], goal_xy[e], goal_yaw[e], progress[e], time_left[e], cfg)
-        obs[e] = o
-        state[e] = global_state_reference(sub, o, goal_xy[e], goal_yaw[e], progress[e], time_left[e],
-                                          cfg.human_slot, cfg)
-
-
-def observations_reference(snap: Snapshot, walls, goal_xy, goal_yaw, progress, time_left, cfg: EnvConfig):
-    """Per-carrier observations [K,3,OBS_DIM] float32 (order of OBS_FEATURE_NAMES) of a snapshot of K envs."""
-    K = len(snap.pxy)
-    cyaw = snap.cyaw
-    out = np.empty((K, N_CARRIERS, OBS_DIM), dtype=np.float32)
-    col = 0
-
-    def put(x):
-        nonlocal col
-        x = np.asarray(x)
-        if x.ndim == 2:  # [K,3] -> one feature
-            out[..., col] = x
-            col += 1
-        else:            # [K,3,n]
-            out[..., col:col + x.shape[-1]] = x
-            col += x.shape[-1]
-
-    v_scale = cfg.max_step_xy / cfg.control_dt
-    put(to_frame(snap.cvel[..., :2], cyaw) / v_scale)
-    put(snap.cvel[..., 2] / (cfg.max_step_yaw / cfg.control_dt))
-    slot, slot_yaw = slot_targets(snap)
-    put(to_frame(slot - snap.cxy, cyaw) / cfg.lookahead)
-    put(wrap(slot_yaw - cyaw))
-    grasp_w = snap.pxy[:, None, :] + from_frame(np.broadcast_to(GRASP_LOCAL, (K, 3, 2)), snap.pyaw[:, None])
-    put(to_frame(grasp_w - snap.cxy, cyaw) / cfg.drop_strain)
-    put(snap.strain / cfg.drop_strain)
-    put(to_frame(snap.pxy[:, None, :] - snap.cxy, cyaw))
-    rel = snap.pyaw[:, None] - cyaw
-    put(np.sin(rel))
-    put(np.cos(rel))
-    put(np.broadcast_to(wrap(snap.look_yaw - snap.pyaw)[:, None], (K, 3)))
-    put(to_frame(np.broadcast_to((snap.look_xy - snap.pxy)[:, None, :], (K, 3, 2)), cyaw) / cfg.lookahead)
-    put(np.clip(to_frame(np.broadcast_to((goal_xy - snap.pxy)[:, None, :], (K, 3, 2)), cyaw) / 5.0, -2.0, 2.0))
-    put(np.broadcast_to(wrap(goal_yaw - snap.pyaw)[:, None], (K, 3)))
-    put(np.broadcast_to(progress[:, None], (K, 3)))
-    for off in (1, 2):
-        j = (np.arange(3) + off) % 3
-        put(to_frame(snap.cxy[:, j] - snap.cxy, cyaw) / 2.0)
-        put(snap.strain[:, j] / cfg.drop_strain)
-    ray_yaw = cyaw[..., None] + _RAY_ANGLES                                  # [K,3,4]
-    dirs = np.stack([np.cos(ray_yaw), np.sin(ray_yaw)], -1)
-    origin = np.broadcast_to(snap.cxy[:, :, None, :], dirs.shape)
-    ray = walls.ray_distance_reference(origin, dirs, RAY_MAX + CARRIER_RADIUS) - CARRIER_RADIUS
-    put(np.clip(ray, -CARRIER_RADIUS, RAY_MAX) / RAY_MAX)
-    d, vec = snap.pay_dist, snap.pay_vec                                      # [K,P], [K,P,2]
-    p = np.argmin(d, axis=1)
-    dmin = d[np.arange(K), p]
-    vmin = vec[np.arange(K), p]
-    put(np.broadcast_to(np.minimum(dmin, 2.0)[:, None], (K, 3)))
-    put(to_frame(np.broadcast_to(vmin[:, None, :], (K, 3, 2)), cyaw))
-    put(np.broadcast_to(time_left[:, None], (K, 3)))
-    assert col == OBS_DIM
-    return out
-
-
 STATE_DIM = 4 + 3 + 2 + 6 + 3 + 9 + 2 + 1 + 2 + 1 + 1 + 3 + 1 + 12 + 1 + 3
-
-
-def global_state_reference(snap: Snapshot, obs, goal_xy, goal_yaw, progress, time_left, human_slot, cfg: EnvConfig):
-    """Centralized-critic state [K,STATE_DIM] float32 of a snapshot of K envs: the team's situation
-    in the payload frame (``obs``: their noise-free observations)."""
-    K = len(snap.pxy)
-    v_scale = cfg.max_step_xy / cfg.control_dt
-    w_scale = cfg.max_step_yaw / cfg.control_dt
-    hs = np.zeros((K, 3))
-    if human_slot is not None:
-        hs[:, human_slot] = 1.0
-    parts = [
-        snap.pxy / 10.0, np.cos(snap.pyaw)[:, None], np.sin(snap.pyaw)[:, None],
-        to_frame(snap.pvel[:, :2], snap.pyaw) / v_scale, snap.pvel[:, 5:6] / w_scale,
-        ((snap.pz - CARRY_HEIGHT) / 0.1)[:, None], snap.tilt[:, None] * 10.0,
-        (to_frame(snap.cxy - snap.pxy[:, None, :], snap.pyaw[:, None]) - GRASP_LOCAL).reshape(K, 6) / cfg.drop_strain,
-        wrap(snap.cyaw - snap.pyaw[:, None] - FACING),
-        (to_frame(snap.cvel[..., :2], snap.pyaw[:, None]) / v_scale).reshape(K, 6),
-        snap.cvel[..., 2] / w_scale,
-        to_frame(snap.look_xy - snap.pxy, snap.pyaw) / cfg.lookahead,
-        wrap(snap.look_yaw - snap.pyaw)[:, None],
-        np.clip(to_frame(goal_xy - snap.pxy, snap.pyaw) / 5.0, -2, 2),
-        wrap(goal_yaw - snap.pyaw)[:, None],
-        progress[:, None],
-        snap.strain / cfg.drop_strain,
-        np.minimum(snap.clearance, 2.0)[:, None],
-        obs[:, :, OBS_FEATURE_NAMES.index("wall_dist_front"):OBS_FEATURE_NAMES.index("wall_dist_right") + 1].reshape(K, 12),
-        time_left[:, None],
-        hs,
-    ]
-    out = np.concatenate([np.asarray(p, dtype=np.float64).reshape(K, -1) for p in parts], axis=1)
-    assert out.shape[1] == STATE_DIM, out.shape
-    return out.astype(np.float32)

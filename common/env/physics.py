@@ -114,28 +114,6 @@ def set_model_walls(m: mujoco.MjModel, walls, wall_bodies, wall_geoms):
     m.bvh_aabb[m.body_bvhadr[wall_bodies], 3:5] = half   # one node per wall body: its geom's box
 
 
-def tracker_targets_reference(carrier_pose, ctrl, actions, cfg: EnvConfig) -> np.ndarray:
-    """New tracker targets [K,9] from the measured carrier poses [K,3,3], the current targets
-    ``ctrl`` [K,9] and stacked actions [K,9] (carrier-frame, in [-1,1]); the numpy reference of
-    the kernel ``TransportPhysics.targets`` runs.
-
-    The target integrates the commanded displacements (so a stiff tracker holds the
-    commanded formation and inconsistent commands strain the grasps) but is kept
-    within ``target_leash`` of the measured pose, so a carrier blocked by a wall
-    does not wind up.
-    """
-    K = len(carrier_pose)
-    a = np.clip(np.asarray(actions, dtype=np.float64).reshape(K, N_CARRIERS, 3), -1.0, 1.0)
-    pose = carrier_pose
-    c, s = np.cos(pose[..., 2]), np.sin(pose[..., 2])
-    t = np.array(ctrl, dtype=np.float64).reshape(K, N_CARRIERS, 3)
-    lx, ly = cfg.target_leash, cfg.target_leash * cfg.max_step_yaw / cfg.max_step_xy
-    t[..., 0] = np.clip(t[..., 0], pose[..., 0] - lx, pose[..., 0] + lx) + (c * a[..., 0] - s * a[..., 1]) * cfg.max_step_xy
-    t[..., 1] = np.clip(t[..., 1], pose[..., 1] - lx, pose[..., 1] + lx) + (s * a[..., 0] + c * a[..., 1]) * cfg.max_step_xy
-    t[..., 2] = np.clip(t[..., 2], pose[..., 2] - ly, pose[..., 2] + ly) + a[..., 2] * cfg.max_step_yaw
-    return t.reshape(K, N_CARRIERS * 3)
-
-
 class _DataCopies(Sequence):
     """``datas[k]``: env k's MjData at its current state, for reading and rendering: the state
     copied out of the batch into an MjData kept per env, then ``mj_forward`` for the derived
@@ -220,7 +198,6 @@ class TransportPhysics:
         self._floor_contacts = self.batch.bind("sensordata")[:, 0]
         self.contact = np.zeros(self.K, dtype=bool)
         self.released = np.zeros(self.K, dtype=bool)
-        self._grasp3 = np.concatenate([GRASP_LOCAL, np.zeros((N_CARRIERS, 1))], axis=1)[None]
         self._leash = (cfg.target_leash, cfg.target_leash * cfg.max_step_yaw / cfg.max_step_xy)
 
     # --- state access --------------------------------------------------------------
@@ -257,13 +234,6 @@ class TransportPhysics:
         kernels.grasp_strain(self.payload_pos, self.payload_quat, GRASP_LOCAL, self.carrier_pose[..., :2], CARRY_HEIGHT,
                              out)
         return out
-
-    def grasp_strain_reference(self):
-        """Numpy :meth:`grasp_strain` (the reference its numba kernel is tested against)."""
-        grasp_w = self.payload_pos[:, None, :] + quat_rotate(self.payload_quat, np.broadcast_to(self._grasp3, (self.K, 3, 3)))
-        cp = self.carrier_pose
-        hand = np.concatenate([cp[..., :2], np.full((self.K, N_CARRIERS, 1), CARRY_HEIGHT)], axis=-1)
-        return np.linalg.norm(grasp_w - hand, axis=-1)
 
     def payload_mass(self, k: int) -> float:
         return float(self.models[k].body_mass[self.payload_body])
@@ -312,30 +282,11 @@ class TransportPhysics:
     def reset(self, envs, payload_xy, payload_yaw, carrier_pose):
         """Place envs ``envs`` (an index, or sorted distinct indices [n]): payload at (xy [n,2],
         carry height, yaw [n]), carriers at carrier_pose [n,3,3], grasps on, targets on the carriers;
-        in one kernel call (:meth:`reset_reference` is the numpy computation)."""
+        in one kernel call (``reference.physics_reset`` is the numpy computation)."""
         envs, xy, yaw, pose = self._placement(envs, payload_xy, payload_yaw, carrier_pose)
         self._sync_models()
         kernels.reset_states(envs, self._reset_state, self.batch.state, self.qpos, self._ctrl, self._eq_active,
                              self.payload_qadr, self.carrier_qadr, xy, yaw, pose, CARRY_HEIGHT)
-        self.released[envs] = False
-        self.contact[envs] = False
-
-    def reset_reference(self, envs, payload_xy, payload_yaw, carrier_pose):
-        """Numpy :meth:`reset`."""
-        envs, xy, yaw, pose = self._placement(envs, payload_xy, payload_yaw, carrier_pose)
-        self._sync_models()
-        self.batch.state[envs] = self._reset_state   # as mj_resetData: an env is its state row
-        q = self.qpos[envs]   # the reset state's qpos, then the placement
-        a = self.payload_qadr
-        q[:, a:a + 2] = xy
-        q[:, a + 2] = CARRY_HEIGHT
-        q[:, a + 3:a + 7] = 0.0
-        q[:, a + 3] = np.cos(yaw / 2)
-        q[:, a + 6] = np.sin(yaw / 2)
-        q[:, self.carrier_qadr.reshape(-1)] = pose
-        self.qpos[envs] = q
-        self._ctrl[envs] = pose
-        self._eq_active[envs] = 1.0
         self.released[envs] = False
         self.contact[envs] = False
 
@@ -350,14 +301,10 @@ class TransportPhysics:
 
     def targets(self, actions):
         """Move the tracker targets (``_ctrl`` [K,9]) for stacked actions [K,9] (carrier-frame, in
-        [-1,1]); see :func:`tracker_targets_reference`."""
+        [-1,1]); ``reference.tracker_targets`` is the numpy computation
+        (target integration and leash)."""
         kernels.tracker_targets(self.qpos, self.carrier_qadr, np.asarray(actions, dtype=np.float64),
                                 self.cfg.max_step_xy, self.cfg.max_step_yaw, *self._leash, self._ctrl)
-        return self._ctrl
-
-    def targets_reference(self, actions):
-        """Numpy :meth:`targets`."""
-        self._ctrl[:] = tracker_targets_reference(self.carrier_pose, self._ctrl, actions, self.cfg)
         return self._ctrl
 
     def step(self, actions):

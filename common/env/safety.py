@@ -404,7 +404,7 @@ def spec_barrier_min(carrier_sd, payload_sd, carrier_xy, pair_rest, cfg: SafetyC
     ``barriers_at_points(...)["min"]`` (same margins, ``inf`` without any barrier) at
     O(K) extra cost; ``< 0`` is a margin violation (``BatchEnv`` ``margin_violation``).
     Computed by the numba kernel ``common.env.kernels.spec_barrier_min``;
-    :func:`spec_barrier_min_reference` is the same computation in numpy.
+    ``reference.spec_barrier_min`` is the same computation in numpy.
     """
     carrier_sd = np.asarray(carrier_sd, dtype=np.float64)
     payload_sd = np.asarray(payload_sd, dtype=np.float64)
@@ -418,82 +418,7 @@ def spec_barrier_min(carrier_sd, payload_sd, carrier_xy, pair_rest, cfg: SafetyC
     return out
 
 
-def spec_barrier_min_reference(carrier_sd, payload_sd, carrier_xy, pair_rest, cfg: SafetyConfig) -> np.ndarray:
-    """Numpy :func:`spec_barrier_min`."""
-    carrier_sd = np.asarray(carrier_sd, dtype=np.float64)
-    payload_sd = np.asarray(payload_sd, dtype=np.float64)
-    K = carrier_sd.shape[0]
-    out = np.full(K, np.inf)
-    if carrier_sd.size:
-        out = np.minimum(out, carrier_sd.reshape(K, -1).min(1) - cfg.carrier_radius)
-    if payload_sd.size:
-        out = np.minimum(out, payload_sd.reshape(K, -1).min(1) - cfg.payload_margin)
-    if cfg.formation_budget:
-        dist, _ = _pair_terms(np.asarray(carrier_xy, dtype=np.float64))
-        dev = np.abs(dist - np.asarray(pair_rest, dtype=np.float64))
-        out = np.minimum(out, (cfg.grasp_tol - dev).min(1))
-    return out
-
-
 # ----------------------------------------------------------------------------- rows
-
-def _wall_rows(points, B, walls, margin, per_entity, budget, cfg):
-    """Wall rows of one kind: ``C [K,budget,9], c, mask, h, entity, wall``.
-
-    ``points [K,E,2]`` with predictor matrices ``B [K,E,2,9]``. Per entity the
-    ``per_entity`` smallest-h walls within ``search_radius`` are candidates; the
-    kind keeps its ``budget`` smallest-h candidates, sorted ascending.
-    """
-    K, E = points.shape[:2]
-    W = walls.shape[1]
-    out_C = np.zeros((K, budget, JOINT_ACT_DIM))
-    out_c = np.zeros((K, budget))
-    out_h = np.zeros((K, budget))
-    out_mask = np.zeros((K, budget), dtype=bool)
-    out_ent = np.full((K, budget), -1, dtype=np.int64)
-    out_wall = np.full((K, budget), -1, dtype=np.int64)
-    take = min(per_entity, W)
-    if budget == 0 or take == 0 or E == 0:
-        return out_C, out_c, out_mask, out_h, out_ent, out_wall
-    sd, q, n = point_box_distance(points, walls)
-    h = sd - margin                                               # [K,E,W]
-    near = np.argsort(h, axis=2, kind="stable")[:, :, :take]      # per-entity nearest walls
-    h_near = np.take_along_axis(h, near, 2).reshape(K, E * take)
-    key = np.where(h_near <= cfg.search_radius, h_near, np.inf)
-    order = np.argsort(key, axis=1, kind="stable")[:, :budget]    # smallest h per kind
-    n_kept = order.shape[1]
-    ent = order // take
-    wall = np.take_along_axis(near.reshape(K, E * take), order, 1)
-    kk = np.arange(K)[:, None]
-    n_sel = n[kk, ent, wall]                                      # [K,m,2]
-    B_sel = B[kk, ent]                                            # [K,m,2,9]
-    h_sel = h[kk, ent, wall]
-    C = np.einsum("kma,kmab->kmb", n_sel, B_sel)                  # n^T B
-    mask = np.isfinite(np.take_along_axis(key, order, 1)) & (np.abs(C).max(-1) > _EPS)
-    out_C[:, :n_kept] = np.where(mask[..., None], C, 0.0)
-    out_c[:, :n_kept] = np.where(mask, -cfg.alpha * h_sel, 0.0)   # n·(p⁺-q) - r >= (1-α)h
-    out_h[:, :n_kept] = np.where(mask, h_sel, 0.0)
-    out_mask[:, :n_kept] = mask
-    out_ent[:, :n_kept] = np.where(mask, ent, -1)
-    out_wall[:, :n_kept] = np.where(mask, wall, -1)
-    return out_C, out_c, out_mask, out_h, out_ent, out_wall
-
-
-def _formation_rows(geom, carrier_B, cfg):
-    """Two rows per pair keeping |D - D0| <= grasp_tol, linearized along the pair unit vector."""
-    dist, unit = _pair_terms(geom.carrier_xy)                     # [K,3], [K,3,2]
-    i, k = np.array(PAIRS).T
-    rel_B = carrier_B[:, i] - carrier_B[:, k]                     # [K,3,2,9]
-    dD = np.einsum("kpa,kpab->kpb", unit, rel_B)                  # D⁺ ≈ D + dD a
-    h_lo = dist - (geom.pair_rest - cfg.grasp_tol)
-    h_hi = (geom.pair_rest + cfg.grasp_tol) - dist
-    C = np.stack([dD, -dD], 2).reshape(-1, N_FORMATION_ROWS, JOINT_ACT_DIM)
-    h = np.stack([h_lo, h_hi], 2).reshape(-1, N_FORMATION_ROWS)
-    mask = np.repeat(dist > _EPS, 2, axis=1) & (np.abs(C).max(-1) > _EPS)
-    C = np.where(mask[..., None], C, 0.0)
-    c = np.where(mask, -cfg.alpha * h, 0.0)                       # h + C a >= (1-α) h
-    ent = np.repeat(np.arange(len(PAIRS)), 2)[None].repeat(len(C), 0)
-    return C, c, mask, h, ent
 
 
 class SafetyModel:
@@ -559,7 +484,7 @@ def build_rows(geom: SafetyGeometry, walls: np.ndarray, cfg: SafetyConfig):
     index; -1 on padding) and ``wall [K,M]`` (-1 if none).
     See the module docstring for the derivation, conservativeness and budget.
     Computed per env by the numba kernel ``common.env.kernels.safety_rows`` (via
-    :class:`SafetyModel`); :func:`build_rows_reference` is the same computation in numpy.
+    :class:`SafetyModel`); ``reference.build_rows`` is the same computation in numpy.
     """
     if not isinstance(geom, SafetyGeometry):
         raise TypeError(f"geom must be a SafetyGeometry, got {type(geom).__name__}")
@@ -569,39 +494,4 @@ def build_rows(geom: SafetyGeometry, walls: np.ndarray, cfg: SafetyConfig):
         geom.grasp_local, geom.pair_rest)
     info = {"h": h, "kind": np.broadcast_to(cfg.slot_kinds, (K, len(cfg.slot_kinds))).copy(), "entity": entity,
             "wall": wall}
-    return C, c, mask, info
-
-
-def build_rows_reference(geom: SafetyGeometry, walls: np.ndarray, cfg: SafetyConfig):
-    """Pure-numpy :func:`build_rows` (the reference the numba kernel is tested against).
-
-    Affine rows ``C a >= c`` (Eq. joint_safety_rows) for the next stacked action.
-
-    Returns the same arrays as :func:`build_rows`.
-    """
-    if not isinstance(geom, SafetyGeometry):
-        raise TypeError(f"geom must be a SafetyGeometry, got {type(geom).__name__}")
-    K = geom.num_envs
-    walls = _check_walls(walls, K)
-    carrier_B, point_B, _ = predictor_matrices(geom, cfg)
-    carrier = _wall_rows(geom.carrier_xy, carrier_B, walls, cfg.carrier_radius,
-                         int(cfg.walls_per_carrier), cfg.carrier_budget, cfg)
-    payload = _wall_rows(payload_points_world(geom), point_B, walls, cfg.payload_margin,
-                         int(cfg.walls_per_point), cfg.payload_budget, cfg)
-    fb = cfg.formation_budget
-    if fb:
-        form = _formation_rows(geom, carrier_B, cfg)
-    else:  # "paper": no formation slots
-        form = (np.zeros((K, 0, JOINT_ACT_DIM)), np.zeros((K, 0)), np.zeros((K, 0), dtype=bool),
-                np.zeros((K, 0)), np.zeros((K, 0), dtype=np.int64))
-    C = np.concatenate([carrier[0], payload[0], form[0]], 1)
-    c = np.concatenate([carrier[1], payload[1], form[1]], 1)
-    mask = np.concatenate([carrier[2], payload[2], form[2]], 1)
-    kinds = cfg.slot_kinds
-    info = {
-        "h": np.concatenate([carrier[3], payload[3], form[3]], 1),
-        "kind": np.broadcast_to(kinds, (K, len(kinds))).copy(),
-        "entity": np.concatenate([carrier[4], payload[4], form[4]], 1),
-        "wall": np.concatenate([carrier[5], payload[5], np.full((K, fb), -1)], 1),
-    }
     return C, c, mask, info

@@ -459,14 +459,6 @@ class Route:
         route_project(self.points, self.s, float(self.ds), xy, s_prev, float(back), width, out)
         return out
 
-    def project_reference(self, xy, s_prev, back: float = 0.6, ahead: float = 1.6):
-        """Numpy :meth:`project` (the reference its numba kernel is tested against)."""
-        lo = self.index(np.asarray(s_prev) - back)
-        width = int(math.ceil((back + ahead) / self.ds)) + 1
-        idx = np.minimum(lo[:, None] + np.arange(width)[None, :], len(self.s) - 1)
-        d2 = np.sum((self.points[idx] - xy[:, None, :]) ** 2, axis=-1)
-        return self.s[idx[np.arange(len(xy)), np.argmin(d2, axis=1)]]
-
 
 def formation_footprint(xy, yaw, n_arc: int = 8):
     """World points of the formation outline (board boundary and carrier discs) at poses [K]."""

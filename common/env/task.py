@@ -19,7 +19,6 @@ import numpy as np
 
 from common.env import kernels
 from common.env.config import EnvConfig
-from common.env.geometry import wrap
 
 
 @dataclass
@@ -38,7 +37,7 @@ class StepOutcome:
 def step_outcome(snap, s_old: np.ndarray, t: np.ndarray, max_steps: int, goal_xy: np.ndarray,
                  goal_yaw: np.ndarray, cfg: EnvConfig) -> StepOutcome:
     """The outcome of the step that led to ``snap`` (``s_old`` [K]: the route projection before it,
-    ``t`` [K]: steps taken including it), in one kernel call; :func:`step_outcome_reference` is
+    ``t`` [K]: steps taken including it), in one kernel call; ``reference.step_outcome`` is
     the numpy computation."""
     K, w = len(s_old), cfg.reward
     (reward, heading_error), flags = np.empty((2, K)), np.empty((5, K), bool)
@@ -51,23 +50,3 @@ def step_outcome(snap, s_old: np.ndarray, t: np.ndarray, max_steps: int, goal_xy
         w.strain, w.collision, w.drop, w.time, w.success, o.reward, o.success, o.drop, o.terminated, o.truncated,
         o.heading_error)
     return o
-
-
-def step_outcome_reference(snap, s_old: np.ndarray, t: np.ndarray, max_steps: int, goal_xy: np.ndarray,
-                           goal_yaw: np.ndarray, cfg: EnvConfig) -> StepOutcome:
-    """Numpy :func:`step_outcome`."""
-    w = cfg.reward
-    drop = snap.strain.max(axis=1) > cfg.drop_strain
-    pos_err = np.linalg.norm(snap.pxy - goal_xy, axis=1)
-    yaw_err = np.abs(wrap(snap.pyaw - goal_yaw))
-    success = (pos_err < cfg.goal_pos_tol) & (yaw_err < cfg.goal_yaw_tol) & ~drop
-    terminated = drop | success
-    truncated = (t >= max_steps) & ~terminated
-    collision = snap.contact.copy()
-    heading_err = np.abs(wrap(snap.route_yaw - snap.pyaw))
-    ds = np.clip(snap.s - s_old, -2 * cfg.max_step_xy, 2 * cfg.max_step_xy)
-    reward = (w.progress * ds / cfg.max_step_xy - w.heading * heading_err
-              - w.strain * np.mean((snap.strain / cfg.drop_strain) ** 2, axis=1)
-              - w.collision * collision - w.drop * drop - w.time + w.success * success)
-    return StepOutcome(reward=reward, success=success, drop=drop, terminated=terminated, truncated=truncated,
-                       collision=collision, heading_error=heading_err)

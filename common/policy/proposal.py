@@ -87,11 +87,6 @@ def _sample_bound(config: ProposalConfig) -> float:
 # ----------------------------------------------------------------------------- numpy (actors)
 
 
-def _center_mu_np(center, config):
-    lim = 1.0 - config.center_eps
-    return np.arctanh(np.clip(center, -lim, lim))
-
-
 def _log_std_rows(log_std: np.ndarray) -> np.ndarray:
     """log_std [d] or [B,d] as the kernels read it: [1,d] or [B,d] float64."""
     return np.ascontiguousarray(log_std.reshape(1, -1) if log_std.ndim == 1 else log_std)
@@ -99,8 +94,8 @@ def _log_std_rows(log_std: np.ndarray) -> np.ndarray:
 
 def proposal_log_prob_np(center, log_std, a_prop, config: ProposalConfig = _DEFAULT) -> np.ndarray:
     """Exact log-density of a_prop [B,d] (|a| < 1) per carrier -> [B,N] (float64).
-    The compiled kernel (common/policy/proposal_kernels.py); ``proposal_log_prob_np_reference``
-    is its numpy twin."""
+    The compiled kernel (common/policy/proposal_kernels.py); ``reference.proposal_log_prob``
+    (common/policy/reference.py) is its numpy twin."""
     center = np.asarray(center, dtype=np.float64)
     log_std = np.asarray(log_std, dtype=np.float64)
     a = np.asarray(a_prop, dtype=np.float64)
@@ -113,22 +108,6 @@ def proposal_log_prob_np(center, log_std, a_prop, config: ProposalConfig = _DEFA
     return logp
 
 
-def proposal_log_prob_np_reference(center, log_std, a_prop, config: ProposalConfig = _DEFAULT) -> np.ndarray:
-    """Numpy ``proposal_log_prob_np``."""
-    center = np.asarray(center, dtype=np.float64)
-    log_std = np.asarray(log_std, dtype=np.float64)
-    a = np.asarray(a_prop, dtype=np.float64)
-    _check(center, log_std, a)
-    if not (np.all(np.isfinite(a)) and np.all(np.abs(a) < 1.0)):
-        raise ValueError(_A_PROP_OUTSIDE)
-    n = _n_agents(center.shape[1], config.act_dim)
-    mu = _center_mu_np(center, config)
-    u = np.arctanh(a)
-    z = (u - mu) * np.exp(-log_std)
-    per_dim = -0.5 * z * z - log_std - _LOG_SQRT_2PI - (np.log1p(-a) + np.log1p(a))
-    return per_dim.reshape(len(a), n, config.act_dim).sum(-1)
-
-
 def proposal_sample_np(center, log_std, rng: np.random.Generator, config: ProposalConfig = _DEFAULT,
                        human_carrier=None, human_action=None):
     """Sample a_prop [B,d] around the center and return (a_prop, logp [B,N]).
@@ -138,7 +117,7 @@ def proposal_sample_np(center, log_std, rng: np.random.Generator, config: Propos
     (optional): those carrier blocks take ``human_action`` [B,d] and log-prob 0
     (the noise is drawn for every entry all the same, so the stream does not
     depend on who holds a block). The compiled kernel
-    (common/policy/proposal_kernels.py); ``proposal_sample_np_reference`` is its numpy twin.
+    (common/policy/proposal_kernels.py); ``reference.proposal_sample`` is its numpy twin.
     """
     center = np.asarray(center, dtype=np.float64)
     log_std = np.asarray(log_std, dtype=np.float64)
@@ -153,25 +132,6 @@ def proposal_sample_np(center, log_std, rng: np.random.Generator, config: Propos
         np.asarray(human_action, dtype=np.float64), config.center_eps, _sample_bound(config), config.act_dim)
     if error != kernels.OK:
         raise ValueError(_NONFINITE_CENTER)
-    return a, logp
-
-
-def proposal_sample_np_reference(center, log_std, rng: np.random.Generator, config: ProposalConfig = _DEFAULT,
-                                 human_carrier=None, human_action=None):
-    """Numpy ``proposal_sample_np`` (the same draws from ``rng``)."""
-    center = np.asarray(center, dtype=np.float64)
-    log_std = np.asarray(log_std, dtype=np.float64)
-    _check(center, log_std)
-    if not (np.all(np.isfinite(center)) and np.all(np.isfinite(log_std))):
-        raise ValueError(_NONFINITE_CENTER)
-    u = _center_mu_np(center, config) + np.exp(log_std) * rng.standard_normal(center.shape)
-    bound = _sample_bound(config)
-    a = np.clip(np.tanh(u).astype(np.float32), -bound, bound).astype(np.float64)
-    logp = proposal_log_prob_np_reference(center, log_std, a, config)
-    if human_carrier is not None:
-        fixed = np.repeat(np.asarray(human_carrier, dtype=bool), config.act_dim, axis=1)
-        a = np.where(fixed, human_action, a)
-        logp = np.where(human_carrier, 0.0, logp)
     return a, logp
 
 

@@ -3,8 +3,8 @@ common/policy/rollout.py): the human blocks, the squashed-Gaussian sample and
 its exact log-density, one pass over the batch each instead of numpy's dozen
 calls per step (they were most of ``propose`` at an actor's 16 envs).
 
-Their numpy references are ``proposal.proposal_sample_np_reference``,
-``proposal.proposal_log_prob_np_reference`` and ``rollout.human_blocks_reference``;
+Their numpy references are ``reference.proposal_sample``, ``reference.proposal_log_prob``
+and ``reference.human_blocks`` (common/policy/reference.py);
 tests/test_proposal_kernels.py compares them. The noise is drawn by the caller
 (``rng.standard_normal``, the same draws in the same order as the reference), so
 a kernel and its reference see the same random numbers. ``math`` and numpy's

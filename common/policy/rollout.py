@@ -33,34 +33,17 @@ _PARTIAL_BLOCK = "rollout: fixed_mask must fix whole carrier blocks (all of a ca
 _NONFINITE_HUMAN = "rollout: human_action is NaN/Inf in a fixed block"
 
 
-def carrier_fixed_mask(fixed_mask: np.ndarray, n_agents: int, act_dim: int) -> np.ndarray:
-    """[B, N*A] bool column mask -> [B, N] per-carrier mask; raises if a block is only partly fixed."""
-    blocks = fixed_mask.reshape(len(fixed_mask), n_agents, act_dim)
-    whole = blocks.all(-1)
-    if np.any(blocks.any(-1) != whole):
-        raise ValueError(_PARTIAL_BLOCK)
-    return whole
-
-
 def human_blocks(a_tree: np.ndarray, fixed: np.ndarray, human: np.ndarray, n_agents: int):
     """``(a_st, human_carrier)``: the human's measured action replaces the trees' in
     fixed blocks ([B,d], fixed and human broadcast to it), and which carrier blocks
     are the human's [B,N]. Raises on a partly fixed block or a NaN/Inf human entry.
-    The compiled kernel; ``human_blocks_reference`` is its numpy twin."""
+    The compiled kernel; ``reference.human_blocks`` is its numpy twin."""
     a_st, human_carrier, error = proposal_kernels.human_blocks(a_tree, fixed, human, a_tree.shape[1] // n_agents)
     if error == proposal_kernels.PARTIAL_BLOCK:
         raise ValueError(_PARTIAL_BLOCK)
     if error == proposal_kernels.NONFINITE_HUMAN:
         raise ValueError(_NONFINITE_HUMAN)
     return a_st, human_carrier
-
-
-def human_blocks_reference(a_tree: np.ndarray, fixed: np.ndarray, human: np.ndarray, n_agents: int):
-    """Numpy ``human_blocks``."""
-    if np.any(fixed) and not np.all(np.isfinite(human[fixed])):
-        raise ValueError(_NONFINITE_HUMAN)
-    human_carrier = carrier_fixed_mask(fixed, n_agents, a_tree.shape[1] // n_agents)
-    return np.where(fixed, human, a_tree), human_carrier
 
 
 def propose(

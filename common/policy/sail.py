@@ -43,8 +43,8 @@ and are ignored. The human block stays exactly at its measured value.
 
 numpy solver: `sail_project_np` runs the Newton loop in a compiled numba kernel
 (`common/policy/sail_kernels.py`, one loop over samples, nogil so it runs in the actor
-and learner threads side by side); `sail_project_np_reference` is the same solver as a
-vectorized numpy loop, the reference the kernel is tested against
+and learner threads side by side); `reference.sail_project` (common/policy/reference.py) is
+the same solver as a vectorized numpy loop, the reference the kernel is tested against
 (tests/test_sail_kernel.py). torch is imported inside the torch functions only: actor
 processes use the numpy solver and never load torch.
 """
@@ -133,39 +133,16 @@ def _check_options(n_newton, damping):
         raise ValueError(f"sail: damping must be one of {_DAMPINGS}, got {damping!r}")
 
 
-# ----------------------------------------------------------------------------- numpy (kernel and reference)
-
-
-def _line_search_np(x, dx, a, Cn, cn, kappa):
-    """argmin_{t >= 0} f(x + t dx): the root of the increasing piecewise-linear phi'(t)."""
-    r = cn - (Cn @ x[..., None])[..., 0]
-    s = (Cn @ dx[..., None])[..., 0]
-    g0, q = np.sum((x - a) * dx, -1), np.sum(dx * dx, -1)
-
-    def dphi(t):  # [B,T] -> phi'(t) [B,T]
-        h = np.maximum(r[:, None, :] - t[..., None] * s[:, None, :], 0.0)
-        return g0[:, None] + t * q[:, None] - kappa[:, None] * np.sum(h * s[:, None, :], -1)
-
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        tb = r / s
-    valid = (s != 0) & (tb > 0)  # rows that switch on/off at a positive step
-    tb = np.where(valid, tb, 0.0)
-    neg = valid & (dphi(tb) < 0)
-    lo = np.max(np.where(neg, tb, 0.0), -1)  # last breakpoint still descending
-    hi = np.min(np.where(valid & ~neg, tb, np.inf), -1)
-    mid = np.where(np.isfinite(hi), 0.5 * (lo + hi), lo + 1.0)
-    on = (r - mid[:, None] * s) > 0  # rows penalized on (lo, hi), where phi' is linear
-    slope = q + kappa * np.sum(np.where(on, s * s, 0.0), -1)
-    t = lo - dphi(lo[:, None])[:, 0] / np.where(slope > 0, slope, 1.0)
-    return np.where(slope > 0, np.clip(t, lo, hi), 1.0)
+# ----------------------------------------------------------------------------- numpy (the kernels)
 
 
 def _prepare_np(a_st, C, c, mask, kappa, n_newton, damping, fixed_mask, fixed_action, config,
                 compiled: bool = True):
     """Validation, fixed-block absorption and row normalization shared by the kernel and its
-    reference. Returns (a, Cn, cn, keep, kappa [B], n_newton, damping). ``compiled``: the
-    absorption and normalization in one compiled pass (``sail_kernels.sail_prepare``), else
-    in numpy (``absorb_fixed``, ``normalize_rows``: the references' path)."""
+    reference (``reference.sail_project``). Returns (a, Cn, cn, keep, kappa [B], n_newton,
+    damping). ``compiled``: the absorption and normalization in one compiled pass
+    (``sail_kernels.sail_prepare``), else in numpy (``absorb_fixed``, ``normalize_rows``: the
+    references' path, common/policy/reference.py)."""
     n_newton = config.n_newton if n_newton is None else n_newton
     damping = config.damping if damping is None else damping
     a = np.asarray(a_st, dtype=np.float64)
@@ -233,7 +210,7 @@ def sail_project_np(
     kappa scalar or [B] (>= 0). n_newton/damping default to `config`'s. Returns a_bar [B,d].
 
     The Newton loop runs in the compiled kernel `sail_kernels.sail_newton` (nogil);
-    `sail_project_np_reference` is the numpy loop it is tested against."""
+    `reference.sail_project` is the numpy loop it is tested against."""
     a, Cn, cn, keep, kappa, n_newton, damping = _prepare_np(
         a_st, C, c, mask, kappa, n_newton, damping, fixed_mask, fixed_action, config)
     return sail_newton(*_kernel_args(a, Cn, cn, keep, kappa), n_newton, damping == "exact")
@@ -252,65 +229,11 @@ def sail_implicit_step_np(a_st, C, c, mask, kappa, fixed_mask, fixed_action,
     return x_star, H_inv, offset
 
 
-def sail_implicit_step_np_reference(x_star, C, c, mask, kappa, fixed_mask, fixed_action,
-                                    config: SailConfig = _DEFAULT):
-    """``sail_implicit_step_np``'s (H_inv, offset) at a given ``x_star`` in plain numpy."""
-    _, Cn, cn, keep, kappa, _, _ = _prepare_np(
-        x_star, C, c, mask, kappa, None, None, fixed_mask, fixed_action, config, compiled=False)
-    r = cn - np.einsum("bmd,bd->bm", Cn, x_star)
-    act = (r > 0) & keep
-    Ca = Cn * act[..., None]
-    H = np.eye(Cn.shape[-1]) + kappa[:, None, None] * np.einsum("bmd,bme->bde", Ca, Ca)
-    offset = x_star - kappa[:, None] * np.einsum("bm,bmd->bd", np.where(act, r, 0.0), Cn)
-    return np.linalg.inv(H), offset
-
-
-def sail_project_np_reference(
-    a_st,
-    C,
-    c,
-    mask,
-    kappa,
-    n_newton: int | None = None,
-    damping: str | None = None,
-    fixed_mask=None,
-    fixed_action=None,
-    config: SailConfig = _DEFAULT,
-) -> np.ndarray:
-    """`sail_project_np` in vectorized numpy, the row preparation included (the kernels' reference)."""
-    a, Cn, cn, keep, kappa, n_newton, damping = _prepare_np(
-        a_st, C, c, mask, kappa, n_newton, damping, fixed_mask, fixed_action, config, compiled=False)
-    eye = np.eye(a.shape[1])
-    x = a.copy()
-    todo = np.arange(len(a))  # samples not yet at their exact minimizer
-    for _ in range(n_newton):
-        if todo.size == 0:
-            break
-        xs, at, Ct, ct, kt, kap = x[todo], a[todo], Cn[todo], cn[todo], keep[todo], kappa[todo]
-        resid = ct - (Ct @ xs[..., None])[..., 0]
-        active = (resid > 0) & kt
-        r = np.where(active, resid, 0.0)
-        Ca = Ct * active[..., None]
-        grad = (xs - at) - kap[:, None] * (r[:, None, :] @ Ct)[:, 0, :]
-        H = eye + kap[:, None, None] * (Ca.transpose(0, 2, 1) @ Ca)
-        dx = -np.linalg.solve(H, grad[..., None])[..., 0]
-        # a full step that keeps the active set lands on the minimizer of this quadratic
-        # piece, where grad f = 0: exact, so the sample is done
-        exact = np.all(((ct - (Ct @ (xs + dx)[..., None])[..., 0] > 0) & kt) == active, axis=1)
-        t = np.ones(len(todo))
-        ls = ~exact if damping == "exact" else np.zeros(len(todo), dtype=bool)
-        if ls.any():
-            t[ls] = _line_search_np(xs[ls], dx[ls], at[ls], Ct[ls], ct[ls], kap[ls])
-        x[todo] = xs + t[:, None] * dx
-        todo = todo[~exact]
-    return x
-
-
 # ----------------------------------------------------------------------------- torch (differentiable)
 
 
 def _line_search_torch(x, dx, a, Cn, cn, kappa):
-    """Torch twin of `_line_search_np` (no autograd)."""
+    """Torch twin of `reference.line_search` (no autograd)."""
     import torch
 
     r = cn - torch.einsum("bmd,bd->bm", Cn, x)

@@ -1,7 +1,7 @@
 """Numba kernel of the numpy SAIL solver's damped Newton loop (common/policy/sail.py).
 
 ``sail_newton`` is a loop-over-samples version of the Newton loop of
-``sail.sail_project_np_reference`` (and of its line search ``sail._line_search_np``); the
+``reference.sail_project`` (and of its line search ``reference.line_search``; common/policy/reference.py); the
 caller (``sail.sail_project_np``) validates the inputs, absorbs the fixed (human) columns
 and normalizes the rows first, exactly as the reference does. Per sample the kernel
 follows the reference step by step: the active rows (positive residual, kept), the
@@ -127,7 +127,7 @@ def _penalty_hessian(Ck, ia, na, kap, H):
 
 @njit(cache=True, inline="always")
 def _dphi(t, g0, q, kap, r, s, m):
-    """phi'(t) = g0 + t q - kappa sum_j [r_j - t s_j]_+ s_j (``_line_search_np``'s ``dphi``)."""
+    """phi'(t) = g0 + t q - kappa sum_j [r_j - t s_j]_+ s_j (``reference.line_search``'s ``dphi``)."""
     acc = 0.0
     for j in range(m):
         h = _npmax(r[j] - t * s[j], 0.0)
@@ -137,7 +137,7 @@ def _dphi(t, g0, q, kap, r, s, m):
 
 @njit(cache=True, inline="always")
 def _line_search(x, dx, a, Ck, r, m, kap, s, tb, valid):
-    """``sail._line_search_np`` for one sample: argmin_{t >= 0} f(x + t dx) in closed form.
+    """``reference.line_search`` for one sample: argmin_{t >= 0} f(x + t dx) in closed form.
 
     ``r [m]`` the residuals at x (kept rows); ``s``, ``tb``, ``valid`` scratch [M]."""
     d = x.shape[0]
@@ -181,7 +181,7 @@ def _line_search(x, dx, a, Ck, r, m, kap, s, tb, valid):
 
 @njit(cache=True, nogil=True)
 def sail_newton(a, Cn, cn, keep, kappa, n_newton, exact_damping):
-    """The damped Newton loop of ``sail.sail_project_np_reference`` over the batch.
+    """The damped Newton loop of ``reference.sail_project`` over the batch.
 
     a [B,d], Cn [B,M,d], cn [B,M] (fixed columns absorbed, rows normalized), keep [B,M]
     bool, kappa [B] (>= 0), n_newton >= 0, exact_damping (``damping == "exact"``).

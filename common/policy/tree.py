@@ -30,7 +30,7 @@ Parameters travel as a flat dict[str, np.ndarray] (`export_params`): keys
 the tree so it travels with the tree parameters.
 
 This module is numpy only (`tree_forward_np`, `team_forward_np` — a numba
-kernel beside its numpy reference `team_forward_np_reference` —,
+kernel; its numpy reference is `reference.team_forward` in common/policy/reference.py —,
 `validate_params`): actor processes never import torch. The torch classes
 (`HardObliqueTree`, `TeamPolicy`) are in `common/policy/tree_torch.py`.
 """
@@ -246,19 +246,7 @@ def _team_inputs(params: Mapping[str, np.ndarray], obs: np.ndarray) -> tuple[Par
 
 def team_forward_np(params: Mapping[str, np.ndarray], obs: np.ndarray):
     """All carriers: obs [B,N,obs_dim] -> (a_st [B,N*A], leaves [B,N], nodes [B,N,D], sides [B,N,D]).
-    The compiled kernel (common/policy/tree_kernels.py); ``team_forward_np_reference`` is its numpy twin."""
+    The compiled kernel (common/policy/tree_kernels.py); ``reference.team_forward`` is its numpy twin."""
     spec, obs = _team_inputs(params, obs)
     stacked = params.stacked if isinstance(params, ValidatedParams) else stack_team_arrays(params, spec)
     return team_forward_kernel(np.ascontiguousarray(obs, dtype=np.float64), *stacked, spec.depth)
-
-
-def team_forward_np_reference(params: Mapping[str, np.ndarray], obs: np.ndarray):
-    """Numpy reference of ``team_forward_np``: each carrier's ``tree_forward_np``."""
-    spec, obs = _team_inputs(params, obs)
-    outs = [tree_forward_np(carrier_params(params, i), obs[:, i]) for i in range(spec.n_agents)]
-    return (
-        np.concatenate([o[0] for o in outs], axis=1),
-        np.stack([o[1] for o in outs], axis=1),
-        np.stack([o[2] for o in outs], axis=1),
-        np.stack([o[3] for o in outs], axis=1),
-    )

@@ -1,6 +1,6 @@
 """Numba kernel of the team's hard-tree forward (Eq. hard_tree_policy), the
 actor's per-step tree evaluation. Its numpy reference is
-``common.policy.tree.team_forward_np_reference``; tests/test_tree_kernel.py
+``common.policy.reference.team_forward``; tests/test_tree_kernel.py
 compares them.
 
 Per sample and carrier the kernel evaluates only the ``depth`` gates on the

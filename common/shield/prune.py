@@ -26,7 +26,7 @@ from common.safety_rows import SafetyRows
 from common.shield.qp import InvalidQPInput, QPConfig, solve_cbf_qp
 from common.shield.row_kernels import compact_rows_kernel, keep_rows_kernel
 
-__all__ = ["drop_box_redundant_rows", "drop_box_redundant_rows_reference", "kept_rows", "DEFAULT_LO", "DEFAULT_HI", "MARGIN_REL"]
+__all__ = ["drop_box_redundant_rows", "kept_rows", "DEFAULT_LO", "DEFAULT_HI", "MARGIN_REL"]
 
 # The box the shield solves over: the single source is solve_cbf_qp's own defaults
 # (shield_actions and the shield service call it without lo/hi).
@@ -81,17 +81,20 @@ def _scalar_box(lo, hi) -> tuple[float, float] | None:
 
 def _keep(a, C, c, mask, fixed, lo, hi, config) -> np.ndarray:
     """The kept-row mask: the compiled kernel for the usual scalar box (what
-    every actor step asks), the numpy reference for a per-column box."""
+    every actor step asks), :func:`_keep_fallback` for a per-column box (which the
+    kernel does not take)."""
     box = _scalar_box(lo, hi)
     if box is None:
-        return _keep_reference(a, C, c, mask, fixed, lo, hi, config)
+        return _keep_fallback(a, C, c, mask, fixed, lo, hi, config)
     arrays = [np.require(v, dt, "CA") for v, dt in ((a, np.float64), (C, np.float64), (c, np.float64),
                                                      (mask, np.bool_), (fixed, np.bool_))]
     return keep_rows_kernel(*arrays, *box, _margin(config), _GUARD)
 
 
-def _keep_reference(a, C, c, mask, fixed, lo, hi, config) -> np.ndarray:
-    """The kept-row mask in numpy: any box; the reference of ``keep_rows_kernel``."""
+def _keep_fallback(a, C, c, mask, fixed, lo, hi, config) -> np.ndarray:
+    """The kept-row mask in numpy, for any box: :func:`_keep`'s path for a per-column
+    box (``keep_rows_kernel`` takes only a scalar one), and the kernel's oracle in the
+    tests (through ``reference.drop_box_redundant_rows``)."""
     margin = _margin(config)
     B, M, d = C.shape
     box = _scalar_box(lo, hi)
@@ -158,26 +161,3 @@ def drop_box_redundant_rows(a_prop, rows: SafetyRows, lo=DEFAULT_LO, hi=DEFAULT_
     C_out, c_out, row_out = compact_rows_kernel(np.require(C, np.float64, "CA"), np.require(c, np.float64, "CA"),
                                                 np.require(mask, np.bool_, "CA"), keep)
     return SafetyRows(C_out, c_out, row_out, np.array(fixed, dtype=bool))
-
-
-def drop_box_redundant_rows_reference(a_prop, rows: SafetyRows, lo=DEFAULT_LO, hi=DEFAULT_HI,
-                                      config: QPConfig | None = None) -> SafetyRows:
-    """``drop_box_redundant_rows`` in numpy (keep mask and scatter): the reference
-    its kernels are tested against."""
-    a, C, c, mask, fixed = _arrays(a_prop, rows)
-    keep = _keep_reference(a, C, c, mask, fixed, lo, hi, config)
-    B, M, d = C.shape
-    n_keep = keep.sum(axis=1)
-    Mp = max(1, int(n_keep.max(initial=0)))
-    # kept rows first, in their original order: row (b, m) goes to slot rank = its count
-    # among problem b's kept rows; one scatter, padding stays zero / False
-    b_idx, m_idx = np.nonzero(keep)
-    slot = (np.cumsum(keep, axis=1) - 1)[b_idx, m_idx]
-    C_out = np.zeros((B, Mp, d))
-    c_out = np.zeros((B, Mp))
-    row_out = np.zeros((B, Mp), dtype=bool)
-    C_out[b_idx, slot] = C[b_idx, m_idx]
-    c_out[b_idx, slot] = c[b_idx, m_idx]
-    row_out[b_idx, slot] = mask[b_idx, m_idx]   # a kept non-finite row stays masked out
-    return SafetyRows(np.ascontiguousarray(C_out), np.ascontiguousarray(c_out),
-                      np.ascontiguousarray(row_out), np.array(fixed, dtype=bool))

@@ -3,9 +3,11 @@ box-redundant row pruning (common/shield/prune.py) and the check of a shield
 answer (common/shield/verify.py). Each is one pass over ``[B, M, d]`` that
 the numpy versions spread over a dozen array operations (about 0.1 ms each at
 B = 16, a fixed cost a pipelined actor pays twice per step). The numpy
-versions stay as the references these are tested against
-(tests/test_row_kernels.py); the arithmetic is the same, summed in another
-order (equal to rounding).
+versions are the references these are tested against (tests/test_row_kernels.py):
+common/shield/reference.py for the pruning (its keep mask ``prune._keep_fallback`` is
+also production's path for a per-column box) and ``verify.verify_answer_fallback``
+(production's path for a status array of another type) for the check; the arithmetic
+is the same, summed in another order (equal to rounding).
 """
 from __future__ import annotations
 
@@ -30,7 +32,7 @@ def keep_rows_kernel(a, C, c, mask, fixed, mid, half, margin, guard):
             x = abs(a[b, k]) if fixed[b, k] else abs(mid)
             if vmax == vmax and not (x <= vmax):
                 vmax = x
-    vw = sqrt_d * (vmax + half)   # the rounding bound's scale (prune._keep_reference)
+    vw = sqrt_d * (vmax + half)   # the rounding bound's scale (prune._keep_fallback)
     for b in range(B):
         for m in range(M):
             cv = 0.0

@@ -26,8 +26,9 @@ forged, stale or buggy shield is harmless even on an open network:
 ``verify_answer`` returns ``None`` for an answer to execute, else the reason
 (one of ``REJECT_REASONS``) it was refused: the first failed check in the
 order above, over the whole batch. The checks run as one compiled pass
-(``row_kernels.check_answer_kernel``); ``verify_answer_reference`` is the
-same in numpy, the reference it is tested against.
+(``row_kernels.check_answer_kernel``); ``verify_answer_fallback`` is the
+same in numpy, check by check: the path for a status array that is not of an
+integer type (not what a shield sends), and the kernel's oracle in the tests.
 """
 from __future__ import annotations
 
@@ -52,7 +53,7 @@ def verify_answer(a_prop: np.ndarray, rows: SafetyRows, a_exec: np.ndarray, stat
     if a_exec.dtype.kind != "f":
         return "nonfinite"
     if status.dtype.kind not in "iu":   # not what a shield sends: checked the slow way, same verdict
-        return verify_answer_reference(a_prop, rows, a_exec, status, tol, backend)
+        return verify_answer_fallback(a_prop, rows, a_exec, status, tol, backend)
     C, c = np.asarray(rows.C, np.float64), np.asarray(rows.c, np.float64)
     if C.shape[:1] + C.shape[2:] != a_prop.shape or c.shape != C.shape[:2]:
         return "shape"
@@ -105,9 +106,10 @@ def _check_infeasible_claims(a_prop, rows: SafetyRows, status, violation, tol, b
     return None
 
 
-def verify_answer_reference(a_prop: np.ndarray, rows: SafetyRows, a_exec: np.ndarray, status: np.ndarray,
-                            tol: float = 1e-6, backend: str = "default") -> str | None:
-    """``verify_answer`` in numpy, check by check: the kernel's reference."""
+def verify_answer_fallback(a_prop: np.ndarray, rows: SafetyRows, a_exec: np.ndarray, status: np.ndarray,
+                           tol: float = 1e-6, backend: str = "default") -> str | None:
+    """``verify_answer`` in numpy, check by check: its path for a status array that is not
+    of an integer type (the kernel takes int64), and the kernel's oracle in the tests."""
     a_prop = np.asarray(a_prop, dtype=np.float64)
     a_exec = np.asarray(a_exec)
     status = np.asarray(status)
