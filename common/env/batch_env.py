@@ -22,7 +22,6 @@ import numpy as np
 
 from common.env import kernels, observations, task
 from common.env.config import EnvConfig
-from common.env.geometry import wrap
 from common.env.metrics import margin_violation
 from common.env.layout import (CARRIER_RADIUS, CARRY_HEIGHT, FACING, GRASP_LOCAL, PAIR_REST, PAYLOAD_MASS,
                                PAYLOAD_POINTS_LOCAL)
@@ -88,10 +87,7 @@ class BatchEnv:
         self._acc_all = np.zeros((6, K))   # per-episode sums; _acc names its rows
         self._acc = dict(zip(("ret", "col", "margin", "tilt", "head", "height"), self._acc_all))
         self._min_clear = np.full(K, np.inf)
-        # deadlock (EnvConfig.deadlock_*): the payload pose (x, y, yaw) each env was last still
-        # at, and the step it got there
-        self._still_pose = np.zeros((K, 3))
-        self._still_since = np.zeros(K, dtype=np.int64)
+        self._stillness = task.StillnessClock(cfg, K)   # deadlock vs timeout (EnvConfig.deadlock_*)
         self.fixed_mask = np.zeros((K, JOINT_ACT_DIM), dtype=bool)
         self.human = None
         if cfg.human_slot is not None:
@@ -194,8 +190,7 @@ class BatchEnv:
         self._acc_all[:, envs] = 0.0
         self._min_clear[envs] = np.inf
         observations.snapshot(self.phys, self.scene, self.s_prev, self.goal_s, self.cfg, self.snap, envs)
-        self._still_pose[envs, :2], self._still_pose[envs, 2] = self.snap.pxy[envs], self.snap.pyaw[envs]
-        self._still_since[envs] = 0
+        self._stillness.restart(envs, self.snap.pxy[envs], self.snap.pyaw[envs])
 
     def _place_episodes(self, envs):
         """Goal poses (``goal_xy``, ``goal_yaw`` of envs) of the drawn episodes and their carrier
@@ -268,16 +263,6 @@ class BatchEnv:
         return margin_violation(self._safety_model.barrier_min(snap.car_dist, snap.pay_dist, snap.cxy, PAIR_REST),
                                 self.cfg.margin_violation_tol)
 
-    def _track_stillness(self, snap) -> None:
-        """Restart the stillness clock of envs whose payload left the neighbourhood
-        (deadlock_move_xy, deadlock_move_yaw) of the pose it was last still at."""
-        cfg, still = self.cfg, self._still_pose
-        moved = ((np.hypot(snap.pxy[:, 0] - still[:, 0], snap.pxy[:, 1] - still[:, 1]) > cfg.deadlock_move_xy)
-                 | (np.abs(wrap(snap.pyaw - still[:, 2])) > cfg.deadlock_move_yaw))
-        if moved.any():
-            still[moved, :2], still[moved, 2] = snap.pxy[moved], snap.pyaw[moved]
-            self._still_since[moved] = self.t[moved]
-
     def _accumulate(self, o, margin_violation):
         """Add this step to the episode sums (``_acc``, ``_min_clear``), in one kernel call;
         ``reference.accumulate`` is the numpy computation."""
@@ -315,7 +300,7 @@ class BatchEnv:
             self.phys.release(np.flatnonzero(drop))
 
         margin_violation = self._margin_violation(snap)
-        self._track_stillness(snap)
+        self._stillness.update(snap.pxy, snap.pyaw, self.t)
 
         self._accumulate(o, margin_violation)
 
@@ -337,8 +322,7 @@ class BatchEnv:
                 episodes.append({
                     "scenario": cfg.scenario, "success": bool(success[k]), "drop": bool(drop[k]),
                     "truncated": bool(truncated[k]),
-                    "deadlock": bool(truncated[k]) and (n - self._still_since[k]) * cfg.control_dt
-                    >= cfg.deadlock_window_s - 1e-9,
+                    "deadlock": bool(truncated[k]) and self._stillness.deadlocked(k, n),
                     "return": float(acc["ret"][k]), "steps": n, "collision_steps": int(acc["col"][k]),
                     "col_per_1k": 1000.0 * acc["col"][k] / n,
                     "margin_violation_steps": int(acc["margin"][k]),

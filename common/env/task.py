@@ -19,6 +19,7 @@ import numpy as np
 
 from common.env import kernels
 from common.env.config import EnvConfig
+from common.env.geometry import wrap
 
 
 @dataclass
@@ -50,3 +51,31 @@ def step_outcome(snap, s_old: np.ndarray, t: np.ndarray, max_steps: int, goal_xy
         w.strain, w.collision, w.drop, w.time, w.success, o.reward, o.success, o.drop, o.terminated, o.truncated,
         o.heading_error)
     return o
+
+
+class StillnessClock:
+    """Per env, the payload pose it was last still at and the step it got there: an
+    episode that times out with the payload still for the last ``deadlock_window_s``
+    (within ``deadlock_move_xy`` / ``deadlock_move_yaw``) ended in deadlock, not slowness."""
+
+    def __init__(self, cfg: EnvConfig, num_envs: int):
+        self.cfg = cfg
+        self.pose = np.zeros((num_envs, 3))
+        self.since = np.zeros(num_envs, dtype=np.int64)
+
+    def restart(self, envs, pxy: np.ndarray, pyaw: np.ndarray) -> None:
+        """Episode start of ``envs`` at payload pose (pxy, pyaw) [len(envs)]."""
+        self.pose[envs, :2], self.pose[envs, 2] = pxy, pyaw
+        self.since[envs] = 0
+
+    def update(self, pxy: np.ndarray, pyaw: np.ndarray, t: np.ndarray) -> None:
+        """Restart the clock of envs whose payload left the neighbourhood of its still pose."""
+        moved = ((np.hypot(pxy[:, 0] - self.pose[:, 0], pxy[:, 1] - self.pose[:, 1]) > self.cfg.deadlock_move_xy)
+                 | (np.abs(wrap(pyaw - self.pose[:, 2])) > self.cfg.deadlock_move_yaw))
+        if moved.any():
+            self.pose[moved, :2], self.pose[moved, 2] = pxy[moved], pyaw[moved]
+            self.since[moved] = t[moved]
+
+    def deadlocked(self, k: int, steps: int) -> bool:
+        """Env ``k``'s payload has been still for the window at step ``steps``."""
+        return (steps - int(self.since[k])) * self.cfg.control_dt >= self.cfg.deadlock_window_s - 1e-9
