@@ -1,4 +1,4 @@
-"""sage/bench/system.py: the measuring parts of `sage bench system`.
+"""sage/bench/system/: the measuring parts of `sage bench system`.
 
 The whole benchmark starts a dozen processes (over a minute on 2 cores), so
 it is run by hand (`sage bench system --json`); here each of its parts is
