@@ -28,7 +28,7 @@ from common import keys
 from deploy.sage_run import service_specs
 from deploy.supervisor import ServiceSpec
 from sage.bench.system.cpu import actor_step_cost, cpu_ratio, median_cost
-from sage.bench.system.meter import Repeater, StepMeter
+from sage.bench.system.meter import StepMeter
 
 
 def variants(path: Path, run: Path, cfg) -> dict[str, list[str]]:
@@ -48,7 +48,7 @@ def one_actor(bench, cfg, path: Path, bus, learner) -> dict:
     run = Path(cfg.run_dir)
     meter = StepMeter(cfg.run_id)
     bus.subscribe(keys.status_all(cfg.run_id), meter.on_status)
-    feeder = Repeater(learner.publish_params, 0.5)  # actors wait for parameters
+    feeder = bench.feed_params(learner)  # actors wait for parameters
     actor = variants(path, run, cfg)
     runs: dict[str, list] = {kind: [] for kind in actor}
     costs: dict[str, list] = {kind: [] for kind in actor}

@@ -20,8 +20,19 @@ from deploy.supervisor import Supervisor, SupervisorConfig
 from sage.bench.env import bench_env
 from sage.bench.system.config import SystemBenchConfig
 from sage.bench.system.cpu import process_cpu_s
-from services.config import TrainConfig
+from sage.bench.system.meter import Repeater
+from services.config import ActorConfig, TrainConfig
 from services.learner.service import LearnerService, build_method
+
+
+class ParamsOnlyLearner(LearnerService):
+    """The learner's parameter message without its backlog: nothing consumes the
+    bench's chunks, so a backlog would report them all unsettled and pace the
+    actors (``ActorConfig.max_chunks_ahead``); without one the actor paces on
+    versions alone."""
+
+    def backlog(self) -> dict:
+        return {}
 
 
 class Harness:
@@ -55,8 +66,8 @@ class Harness:
         if connect:
             cfg.transport.connect, cfg.transport.mode = list(connect), "client"
         cfg.actor.exit_on_unhealthy = True
-        if unpaced:
-            cfg.actor.max_chunks_ahead = 1 << 30
+        if unpaced:   # the most the config allows; the feeder's new versions keep it from binding
+            cfg.actor.max_chunks_ahead = ActorConfig.__dataclass_fields__["max_chunks_ahead"].metadata["range"][2]
         cfg.resolve()
         return cfg, cfg.save(Path(cfg.run_dir) / "config.json")
 
@@ -118,9 +129,18 @@ class Harness:
     @staticmethod
     def params_publisher(cfg, bus):
         """The real learner service object, used only for ``publish_params``."""
-        learner = LearnerService(cfg, bus, 0)
+        learner = ParamsOnlyLearner(cfg, bus, 0)
         learner.method = build_method(cfg)
         return learner
+
+    @staticmethod
+    def feed_params(learner, period_s: float = 0.5) -> Repeater:
+        """A new parameter version every ``period_s`` until stopped, so the unpaced
+        actors never wait: each version resets their count of chunks ahead."""
+        def publish_next():
+            learner.version += 1
+            learner.publish_params()
+        return Repeater(publish_next, period_s)
 
     def _wait_shield(self, bus, run_id: str, alive) -> None:
         """Until the shield answers a trivial request (its queryable is declared)."""

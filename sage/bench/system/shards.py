@@ -10,7 +10,7 @@ from common import keys
 from common.transport import Bus
 from deploy.sage_run import router_spec, service_specs
 from deploy.supervisor import free_tcp_port
-from sage.bench.system.meter import Repeater, StepMeter
+from sage.bench.system.meter import StepMeter
 
 
 def shards_phase(bench) -> dict:
@@ -31,7 +31,7 @@ def shards_phase(bench) -> dict:
             try:
                 meter = StepMeter(cfg.run_id)
                 bus.subscribe(keys.status_all(cfg.run_id), meter.on_status)
-                feeder = Repeater(bench.params_publisher(cfg, bus).publish_params, 0.5)
+                feeder = bench.feed_params(bench.params_publisher(cfg, bus))
                 steps = meter.measure(n, bench.cfg.warmup_s, bench.cfg.measure_s, bench.cfg.start_timeout_s,
                                       bench.check)
                 rates = meter.window_rates
