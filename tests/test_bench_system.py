@@ -1,4 +1,4 @@
-"""sage/bench/system.py: the measuring parts of `sage bench system`.
+"""sage/bench/system/: the measuring parts of `sage bench system`.
 
 The whole benchmark starts a dozen processes (over a minute on 2 cores), so
 it is run by hand (`sage bench system --json`); here each of its parts is
@@ -298,3 +298,33 @@ def test_actor_step_cost_counts_the_processes_a_step_needs():
     service = [{"actor": 380.0, "host": 400.0}, {"actor": 390.0, "host": 440.0}, {"actor": 390.0, "host": 420.0}]
     assert cpu_ratio(local, service) == pytest.approx(320.0 / 420.0)   # medians of the rounds that have it
     assert cpu_ratio([{}], service) is None
+
+
+def test_unpaced_actors_get_a_config_in_bounds_and_a_new_version_without_backlog(tmp_path):
+    """The shield/actor phases' actors must never wait for a learner: their config
+    stays within ``actor.max_chunks_ahead``'s bound (it resolves), and the bench's
+    feeder publishes a new version each time with no backlog (which would report
+    every chunk unsettled, nothing consuming them, and pace the actors)."""
+    from common.transport import Bus
+    from services.config import ActorConfig
+
+    bench = SystemBench(SystemBenchConfig(), tmp_path, log=lambda _t: None)
+    cfg, _ = bench.train_config(1, None, "u", unpaced=True)
+    assert cfg.actor.max_chunks_ahead == ActorConfig.__dataclass_fields__["max_chunks_ahead"].metadata["range"][2]
+    paced, _ = bench.train_config(1, None, "p")
+    assert paced.actor.max_chunks_ahead == ActorConfig().max_chunks_ahead
+    bus = Bus.open(inprocess=True)
+    got = []
+    bus.subscribe(keys.params(cfg.run_id),
+                  lambda _k, payload: got.append(wire.decode(payload, run_id=cfg.run_id, expect="params").body))
+    feeder = bench.feed_params(bench.params_publisher(cfg, bus), period_s=0.01)
+    try:
+        deadline = time.monotonic() + 20
+        while len(got) < 3 and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        feeder.stop()
+        bus.close()
+    versions = [b["version"] for b in got]
+    assert len(versions) >= 3 and versions == sorted(set(versions))   # a new version every time
+    assert all(b.get("chunks_received") is None and b.get("chunks_waiting") is None for b in got)

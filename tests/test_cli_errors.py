@@ -17,7 +17,7 @@ import shutil
 import numpy as np
 import pytest
 
-import sage.bench.system
+import sage.bench.system.cli
 import sage.suite
 import sage.train
 from sage.cli import main
@@ -247,7 +247,7 @@ def nothing_runs(monkeypatch, tmp_path):
     monkeypatch.setattr(sage.train, "run_inprocess", refuse)
     monkeypatch.setattr(sage.train, "run_supervised", refuse)
     monkeypatch.setattr(sage.suite, "run_suite", refuse)
-    monkeypatch.setattr(sage.bench.system, "SystemBench", refuse)
+    monkeypatch.setattr(sage.bench.system.cli, "SystemBench", refuse)
     monkeypatch.chdir(tmp_path)   # nothing lands in the repository either
     monkeypatch.delenv("SAGE_TRACEBACK", raising=False)
 

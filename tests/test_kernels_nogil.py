@@ -7,11 +7,11 @@ import pytest
 
 from common.env import kernels as env_kernels
 from common.policy import proposal_kernels, sail_kernels, tree_kernels
-from common.shield import kernels as qp_kernels
+from common.shield import qp_solver
 from common.shield import row_kernels
 
 
-@pytest.mark.parametrize("module", [env_kernels, qp_kernels, row_kernels, proposal_kernels, sail_kernels, tree_kernels],
+@pytest.mark.parametrize("module", [env_kernels, qp_solver, row_kernels, proposal_kernels, sail_kernels, tree_kernels],
                          ids=lambda m: m.__name__)
 def test_callable_kernels_are_nogil(module):
     kernels = {name: f for name, f in vars(module).items()

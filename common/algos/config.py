@@ -10,9 +10,8 @@ from common.config_fields import bounded, check_fields, from_mapping
 @dataclass
 class AlgoConfig:
     # optimisation
-    # Tuned on narrow_gate, 2 cores (docs/results_narrow_gate.md): the update cost is
-    # dominated by per-minibatch overhead (autograd calls, TALO HVP), so few large minibatches;
-    # 1e-3 lets the leaf controllers move within a 4-minute budget.
+    # Few large minibatches (an update's cost is per-minibatch overhead) and lr 1e-3 (the leaf
+    # controllers must move within a short budget): measured in docs/results_narrow_gate.md.
     actor_lr: float = bounded(1e-3, gt=0.0, le=1.0)
     critic_lr: float = bounded(1e-3, gt=0.0, le=1.0)
     epochs: int = bounded(4, ge=1, le=1000)
@@ -35,16 +34,12 @@ class AlgoConfig:
     #   "direct": theta <- theta + talo_eta * g (the paper's update after Eq. talo_projection),
     #             no clipping; the entropy gradient is folded into g_ind *before* the
     #             projection, so the applied step itself meets Eq. (talo_condition).
-    # Default "adam": on the synthetic bandit (obs_dim 40, 512 samples/update, 40 updates,
-    # 2 seeds) adam raised the deterministic reward more (talo_cbf +1.57 vs +1.41 at
-    # eta 0.05; sage +1.43 vs +1.21) and is scale-free, while the direct step met the
-    # condition on every minibatch (adam: talo_cbf 81%, sage 98%) but needs eta tuned to
-    # the gradient scale, which grew during training (eta 0.1: talo_cbf's W_gap averaged
-    # ~600 over 40 updates).
+    # Default "adam": scale-free, it raised the reward more than the direct step on the
+    # synthetic bandit, though only the direct step meets the condition on every step
+    # (docs/results_talo_step.md).
     talo_step: str = bounded("adam", choices=("adam", "direct"))
-    # eta_theta of the direct step, from {0.02, 0.05, 0.1, 0.2} on that bandit: 0.02 learned
-    # slowest, 0.1 let W_gap blow up over 40 updates, 0.2 made a seed's reward fall within 20.
-    # Its steps are about 2x Adam's (actor_lr=1e-3) in parameter norm.
+    # eta_theta of the direct step: between the values that learned too slowly and those that
+    # blew W_gap up on the bandit (docs/results_talo_step.md).
     talo_eta: float = bounded(0.05, gt=0.0, le=10.0)
     # HAPPO carrier order: "update" (drawn once per update, as HARL draws it once per
     # training call) or "minibatch" (redrawn every minibatch; the old behaviour)

@@ -20,7 +20,7 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
-from common.shield.kernels import STATUS_MAX_ITER, STATUS_OPTIMAL, solve_batch_active_set
+from common.shield.qp_solver import STATUS_MAX_ITER, STATUS_OPTIMAL, solve_batch_active_set
 
 _SOLVED = int(osqp.SolverStatus.OSQP_SOLVED)
 _INFEASIBLE = (int(osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE),

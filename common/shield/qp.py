@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.safety_rows import SafetyRows
-from common.shield.kernels import (
+from common.shield.qp_solver import (
     STATUS_INFEASIBLE,
     STATUS_MAX_ITER,
     STATUS_OPTIMAL,

@@ -18,7 +18,7 @@ forged, stale or buggy shield is harmless even on an open network:
   conditions of Eq. (qpshield) hold to ``tol``, a_exec - a_prop = C_A^T lambda
   + box multipliers with lambda >= 0 on the rows and box faces active at
   a_exec, and complementary slackness. The multipliers are the actor's own:
-  a small NNLS on the active rows (``kernels.diagnostics_batch``, the same
+  a small NNLS on the active rows (``qp_solver.diagnostics_batch``, the same
   certificate the QP reports), independent of anything the shield sends. The
   projection is strictly convex, so its KKT point is unique: a feasible but
   wrong answer ("all zeros, optimal") is refused as ``kkt``.
@@ -35,7 +35,7 @@ from __future__ import annotations
 import numpy as np
 
 from common.safety_rows import SafetyRows
-from common.shield.kernels import STATUS_INFEASIBLE, STATUS_OPTIMAL, diagnostics_batch
+from common.shield.qp_solver import STATUS_INFEASIBLE, STATUS_OPTIMAL, diagnostics_batch
 from common.shield.qp import QPConfig, shield_actions
 from common.shield.row_kernels import CHECK_ORDER, check_answer_kernel
 

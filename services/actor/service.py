@@ -333,7 +333,7 @@ class ActorService(Service):
         episodes: list[dict] = []
         chunk_incarnation = None
         T = self.cfg.chunk_len
-        sent = None   # every group's proposal (and query) for the coming step, made with ``p``
+        sent = None   # every group's proposal (and query) for the coming step, made with ``params_msg``
         cpu0 = time.thread_time()
         while not self.stop.is_set():
             self.loop_cpu_s = time.thread_time() - cpu0
@@ -341,29 +341,29 @@ class ActorService(Service):
                 self._adopt_params()
                 if not versions:
                     self._pace()
-                p = self.params
-                sent = [self._propose_group(out, p) for out in outs]
-            if versions and p["incarnation"] != chunk_incarnation:
+                params_msg = self.params
+                sent = [self._propose_group(out, params_msg) for out in outs]
+            if versions and params_msg["incarnation"] != chunk_incarnation:
                 # learner restarted: its resumed policy starts a fresh chunk (the
                 # partial one was made with parameters the new learner never issued)
                 self.chunks_discarded += 1
                 self.steps_discarded += len(versions) * self.cfg.envs_per_actor
                 buf = {k: [] for k in wire.TRAJ_STEP_FIELDS}
                 versions, episodes = [], []
-            chunk_incarnation = p["incarnation"]
-            stepped = self._step_groups(envs, outs, sent, p, refill=len(versions) + 1 < T)
+            chunk_incarnation = params_msg["incarnation"]
+            stepped = self._step_groups(envs, outs, sent, params_msg, refill=len(versions) + 1 < T)
             if stepped is None:   # stopping: the partial chunk is dropped
                 return
-            records, outs, sent, p_next = stepped
+            records, outs, sent, next_params_msg = stepped
             for k in wire.TRAJ_STEP_FIELDS:  # copy: envs may reuse their output buffers
                 buf[k].append(np.concatenate([np.asarray(r[k]) for r in records]) if len(records) > 1
                               else np.array(records[0][k], copy=True))
-            versions.append(p["version"])
+            versions.append(params_msg["version"])
             K = sum(len(r["a_exec"]) for r in records)
             self.env_steps += K
             self.steps_taken += 1
             if self.cfg.actor.trace_every and self.steps_taken % self.cfg.actor.trace_every == 0:
-                self._publish_trace(records, p["version"])
+                self._publish_trace(records, params_msg["version"])
             self.steps_rate.add(self.env_steps)
             self.m.env_steps.labels(**self.labels).inc(K)
             for ep in (ep for nxt in outs for ep in nxt.get("episodes", [])):
@@ -382,24 +382,24 @@ class ActorService(Service):
                 self._publish_chunk(buf, versions, episodes, last)
                 buf = {k: [] for k in wire.TRAJ_STEP_FIELDS}
                 versions, episodes = [], []
-            p = p_next
+            params_msg = next_params_msg
             self.publish_status()
 
-    def _propose_group(self, out: dict, p: dict) -> tuple:
-        """One group's proposal with parameters ``p`` (Eq. action_chain); a
+    def _propose_group(self, out: dict, params_msg: dict) -> tuple:
+        """One group's proposal with parameters ``params_msg`` (Eq. action_chain); a
         pipelined actor sends its shield query at once (a synchronous one when
         it needs the answer, in ``filter_actions``)."""
-        kappa = float(p["settings"].get("kappa", 0.0)) if self.uses_sail else 0.0
+        kappa = float(params_msg["settings"].get("kappa", 0.0)) if self.uses_sail else 0.0
         rows = SafetyRows.of(out)
-        prop = self._propose(p["params"], out["obs"], rows, out["human_action"], self.rng, "train",
+        prop = self._propose(params_msg["params"], out["obs"], rows, out["human_action"], self.rng, "train",
                              kappa=kappa, use_sail=self.uses_sail)
         a_prop = np.asarray(prop["a_prop"], dtype=np.float64)
         asked = self.ask_shield(a_prop, rows) if self.shielded and self.pipelined else None
         return prop, a_prop, rows, asked
 
-    def _step_groups(self, envs: list, outs: list[dict], sent: list[tuple], p: dict, refill: bool):
+    def _step_groups(self, envs: list, outs: list[dict], sent: list[tuple], params_msg: dict, refill: bool):
         """Execute one step of every env group, proposed (and, pipelined, asked)
-        in ``sent`` with parameters ``p``: each group waits for its verified
+        in ``sent`` with parameters ``params_msg``: each group waits for its verified
         answer and steps physics. Pipelined with ``refill`` (the chunk goes on),
         each group proposes its next step and sends that query right after
         stepping, so group 0's query is out while group 1 steps and the other
@@ -407,13 +407,13 @@ class ActorService(Service):
         uses the same parameters, adopted once after group 0 stepped; a learner
         restart (new incarnation) empties the pipeline instead, so the partial
         chunk is dropped before anything of the new policy is proposed.
-        Returns ``(records, next outputs, next sent or None, next p)``, or None
+        Returns ``(records, next outputs, next sent or None, next params_msg)``, or None
         if stopping (nothing more is executed)."""
         if self._chaos is not None and self._chaos.random() < self.cfg.actor.chaos_crash_prob:
             self.log.error("chaos: crashing on purpose (actor.chaos_crash_prob)")
             os._exit(EXIT_CHAOS)   # like a killed process: no cleanup, no last chunk
         refill = refill and self.pipelined
-        records, nxts, next_sent, p_next = [], [], [], p
+        records, nxts, next_sent, next_params_msg = [], [], [], params_msg
         for g, (env, out, (prop, a_prop, rows, asked)) in enumerate(zip(envs, outs, sent)):
             if not self.shielded:
                 a_exec, shield_status = a_prop, np.full(len(a_prop), UNSHIELDED)
@@ -434,11 +434,11 @@ class ActorService(Service):
             nxts.append(nxt)
             if refill and g == 0:
                 self._adopt_params()
-                p_next = self.params
-                refill = p_next["incarnation"] == p["incarnation"]
+                next_params_msg = self.params
+                refill = next_params_msg["incarnation"] == params_msg["incarnation"]
             if refill:
-                next_sent.append(self._propose_group(nxt, p_next))
-        return records, nxts, (next_sent if refill else None), p_next
+                next_sent.append(self._propose_group(nxt, next_params_msg))
+        return records, nxts, (next_sent if refill else None), next_params_msg
 
     def _publish_trace(self, records: list[dict], version: int) -> None:
         """The step's decisions for `sage watch` (wire kind ``trace``)."""
@@ -457,24 +457,25 @@ class ActorService(Service):
         acfg = self.cfg.actor
         t0 = time.monotonic()
         while not self.stop.is_set():
-            p = self.params
-            ahead = sum(1 for v, inc, _ in self._sent_chunks if v >= p["version"] and inc == p["incarnation"])
-            if (ahead < acfg.max_chunks_ahead and self._unsettled(p) < acfg.max_chunks_ahead) \
+            params_msg = self.params
+            ahead = sum(1 for v, inc, _ in self._sent_chunks
+                        if v >= params_msg["version"] and inc == params_msg["incarnation"])
+            if (ahead < acfg.max_chunks_ahead and self._unsettled(params_msg) < acfg.max_chunks_ahead) \
                     or time.monotonic() - t0 > acfg.pace_timeout_s:
                 return
             self.publish_status()
             self.stop.wait(0.005)
             self._adopt_params()
 
-    def _unsettled(self, p: dict) -> int:
+    def _unsettled(self, params_msg: dict) -> int:
         """This actor's chunks the learner has not used or dropped yet, by its
-        broadcast ``p``: those sent under its incarnation after the last one it
+        broadcast ``params_msg``: those sent under its incarnation after the last one it
         admitted (in flight or in its inbox) plus those it holds waiting."""
-        received, waiting = p.get("chunks_received"), p.get("chunks_waiting")
+        received, waiting = params_msg.get("chunks_received"), params_msg.get("chunks_waiting")
         if received is None or waiting is None or self.actor_id >= len(received):
             return 0   # a learner that does not report its backlog: the version rule alone
         last = int(received[self.actor_id])
-        in_flight = sum(1 for _, inc, seq in self._sent_chunks if inc == p["incarnation"] and seq > last)
+        in_flight = sum(1 for _, inc, seq in self._sent_chunks if inc == params_msg["incarnation"] and seq > last)
         return in_flight + max(0, int(waiting[self.actor_id]))
 
     def _publish_chunk(self, buf, versions, episodes, last) -> None:

@@ -1,4 +1,4 @@
-"""Numba kernels for the exact joint CBF-QP shield (Eq. qpshield).
+"""The QP solver of the exact joint CBF-QP shield (Eq. qpshield): numba kernels.
 
 Two independent pieces live here:
 
