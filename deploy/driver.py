@@ -86,7 +86,7 @@ class RunDriver:
     ``start()``, ``poll()`` and ``shutdown()`` are its steps, usable on their own."""
 
     label = "supervisor"               # the final line's and the records' name for the placement
-    label_error = "supervisor"         # the outcome's words when the driver itself fails
+    label_error: str | None = None     # the outcome's words when the driver itself fails (default: label)
     down_word, down_states = "down", ("backoff", "failed")   # the live line's members not up
 
     def __init__(self, members: Sequence[Member], run_dir: str | Path, cfg, *, out=None):
@@ -215,7 +215,7 @@ class RunDriver:
                     self.write_status(status)
                 self.idle()
         except BaseException as exc:
-            self.finish(EXIT_GAVE_UP, f"{self.label_error} error: {exc}")
+            self.finish(EXIT_GAVE_UP, f"{self.label_error or self.label} error: {exc}")
             self.event("error", message=str(exc))
             raise
         finally:
