@@ -60,6 +60,22 @@ def free_tcp_port(host: str = "127.0.0.1") -> int:
         return s.getsockname()[1]
 
 
+def kill_group(pid: int, sig: int) -> None:
+    """``sig`` to the process group a member leads (started with its own session: pgid == pid)."""
+    try:
+        os.killpg(pid, sig)
+    except (ProcessLookupError, PermissionError):
+        pass
+
+
+def parent_death_argv(argv: Sequence[str], python: str | None = None) -> list[str]:
+    """``argv`` behind ``deploy.pdeathsig`` (run by ``python``, default ``argv[0]``): the
+    process gets SIGTERM when this one (the supervisor, a Ray worker) dies. Linux only."""
+    if not sys.platform.startswith("linux"):
+        return list(argv)
+    return [python or argv[0], "-m", "deploy.pdeathsig", str(os.getpid()), "--", *argv]
+
+
 class StatusSource(Protocol):
     def line(self) -> str: ...
     def snapshot(self) -> dict: ...

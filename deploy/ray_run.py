@@ -53,7 +53,7 @@ from pathlib import Path
 from typing import Sequence
 
 from common.rundir import atomic_write_text
-from deploy.driver import EXIT_GAVE_UP, Member, RunDriver
+from deploy.driver import EXIT_GAVE_UP, Member, RunDriver, kill_group, parent_death_argv
 from deploy.sage_run import prepare_run, run_with_status
 from deploy.supervisor import ServiceSpec
 from services.config import TrainConfig
@@ -223,27 +223,12 @@ def check_capacity(requests: dict[str, dict], total: dict[str, float]) -> None:
 
 
 # ----------------------------------------------------------------- inside Ray
-def child_command(argv: Sequence[str]) -> list[str]:
-    """``argv`` behind ``deploy.pdeathsig``: the process gets SIGTERM when the Ray
-    worker that started it dies (``ray.kill``, a crashed or lost worker)."""
-    if not sys.platform.startswith("linux"):
-        return list(argv)
-    return [argv[0], "-m", "deploy.pdeathsig", str(os.getpid()), "--", *argv]
-
-
-def kill_group(pid: int, sig: int) -> None:
-    try:
-        os.killpg(pid, sig)   # the child leads its own group: pgid == pid
-    except (ProcessLookupError, PermissionError):
-        pass
-
-
 def run_logged(argv: Sequence[str], log_path: str | Path, env: dict | None = None) -> int:
     """Run ``argv`` in a Ray task, its output appended to ``log_path`` (on the task's
     node); the exit code. The process dies with the task (cancelled, worker lost)."""
     Path(log_path).parent.mkdir(parents=True, exist_ok=True)
     with open(log_path, "ab") as log:
-        proc = subprocess.Popen(child_command(argv), stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
+        proc = subprocess.Popen(parent_death_argv(argv), stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
                                 start_new_session=True, env=env)
     try:
         return proc.wait()
@@ -317,7 +302,7 @@ class ServiceRunner:
             time.sleep(restart_delay_s)   # no tight loop of a service that dies at start
         for path, text in files.items():
             _materialize(path, text)
-        self.proc = subprocess.Popen(child_command(argv), stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+        self.proc = subprocess.Popen(parent_death_argv(argv), stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                                      stderr=subprocess.STDOUT, start_new_session=True,
                                      cwd=cwd if os.path.isdir(cwd) else None, env={**os.environ, **env})
         what = "restarted" if self.restarted else "started"

@@ -1,5 +1,8 @@
-"""A generic process supervisor: runs ``ServiceSpec`` commands, each as its
-own process group (what SAGE runs is ``deploy/sage_run.py``), and:
+"""The local placement: a generic process supervisor that runs ``ServiceSpec``
+commands, each as its own process group of this host (what SAGE runs is
+``deploy/sage_run.py``). The run's records, loop, signals and shutdown waves
+are the run driver's (``deploy/driver.py``), shared with the Ray placement;
+what is this placement's own is where and how a member runs and restarts. It:
 
 * restarts a service that crashed (non-zero exit or killed) after an
   exponential backoff, and gives up cleanly -- everything stopped, exit code
@@ -34,7 +37,8 @@ from pathlib import Path
 from typing import Sequence
 
 from common.status import EXIT_FATAL
-from deploy.driver import EXIT_GAVE_UP, Member, RunDriver, StatusSource, free_tcp_port, wait_tcp_ready
+from deploy.driver import (EXIT_GAVE_UP, Member, RunDriver, StatusSource, free_tcp_port, kill_group,
+                           parent_death_argv, wait_tcp_ready)
 
 __all__ = ["EXIT_GAVE_UP", "ServiceSpec", "StatusSource", "Supervisor", "SupervisorConfig", "free_tcp_port",
            "wait_tcp_ready"]
@@ -121,9 +125,7 @@ class Supervisor(RunDriver):
 
     # ------------------------------------------------------------- launching
     def _launch(self, c: _Child) -> None:
-        argv = list(c.spec.argv)
-        if self.cfg.parent_death_signal and sys.platform.startswith("linux"):
-            argv = [sys.executable, "-m", "deploy.pdeathsig", str(os.getpid()), "--", *argv]
+        argv = parent_death_argv(c.spec.argv, sys.executable) if self.cfg.parent_death_signal else list(c.spec.argv)
         with open(self.paths.log(c.spec.name), "ab") as log:
             # own session = own process group: a terminal's Ctrl-C reaches only the
             # supervisor, and killpg() reaches the service and anything it spawned
@@ -152,15 +154,9 @@ class Supervisor(RunDriver):
                 self._wait_ready(c)
 
     # ------------------------------------------------------------- monitoring
-    def _kill_group(self, pid: int, sig: int) -> None:
-        try:
-            os.killpg(pid, sig)  # the child leads its own group: pgid == pid
-        except (ProcessLookupError, PermissionError):
-            pass
-
     def _reaped(self, c: _Child, code: int, how: str = "exit") -> float:
         pid = c.proc.pid
-        self._kill_group(pid, signal.SIGKILL)  # whatever the service left behind in its group
+        kill_group(pid, signal.SIGKILL)  # whatever the service left behind in its group
         c.proc, c.last_code = None, code
         uptime = time.monotonic() - c.started
         self.event(how, service=c.spec.name, pid=pid, code=code, uptime_s=round(uptime, 3))
@@ -230,7 +226,7 @@ class Supervisor(RunDriver):
                 c.state = "stopped"  # a pending restart is cancelled
         running = [c for c in group if c.proc is not None]
         for c in running:
-            self._kill_group(c.proc.pid, signal.SIGTERM)
+            kill_group(c.proc.pid, signal.SIGTERM)
             self.event("stop", service=c.spec.name, pid=c.proc.pid, signal="SIGTERM")
         deadline = time.monotonic() + self.cfg.term_deadline_s
         n_signals = len(self.signals)
@@ -245,7 +241,7 @@ class Supervisor(RunDriver):
                 time.sleep(min(self.cfg.poll_s, 0.05))
         for c in running:  # past the deadline (or a second signal): no more waiting
             pid = c.proc.pid
-            self._kill_group(pid, signal.SIGKILL)
+            kill_group(pid, signal.SIGKILL)
             self.event("kill", service=c.spec.name, pid=pid, signal="SIGKILL")
             c.proc.wait()
             self._reaped(c, c.proc.returncode)
