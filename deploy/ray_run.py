@@ -41,7 +41,6 @@ Ray is imported only when a function here is called: nothing else needs it.
 """
 from __future__ import annotations
 
-import json
 import os
 import signal
 import socket
@@ -49,15 +48,14 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
-from common.rundir import RunDir, atomic_write_text
-from common.status import LiveLine, StatusBoard
-from common.transport import TlsFiles
-from deploy.sage_run import router_spec, service_specs
-from deploy.supervisor import EXIT_GAVE_UP, ServiceSpec, free_tcp_port, wait_tcp_ready
+from common.rundir import atomic_write_text
+from deploy.driver import EXIT_GAVE_UP, Member, RunDriver, kill_group, parent_death_argv
+from deploy.sage_run import prepare_run, run_with_status
+from deploy.supervisor import ServiceSpec
 from services.config import TrainConfig
 from services.launcher import ROLES, run_members
 
@@ -225,27 +223,12 @@ def check_capacity(requests: dict[str, dict], total: dict[str, float]) -> None:
 
 
 # ----------------------------------------------------------------- inside Ray
-def child_command(argv: Sequence[str]) -> list[str]:
-    """``argv`` behind ``deploy.pdeathsig``: the process gets SIGTERM when the Ray
-    worker that started it dies (``ray.kill``, a crashed or lost worker)."""
-    if not sys.platform.startswith("linux"):
-        return list(argv)
-    return [argv[0], "-m", "deploy.pdeathsig", str(os.getpid()), "--", *argv]
-
-
-def kill_group(pid: int, sig: int) -> None:
-    try:
-        os.killpg(pid, sig)   # the child leads its own group: pgid == pid
-    except (ProcessLookupError, PermissionError):
-        pass
-
-
 def run_logged(argv: Sequence[str], log_path: str | Path, env: dict | None = None) -> int:
     """Run ``argv`` in a Ray task, its output appended to ``log_path`` (on the task's
     node); the exit code. The process dies with the task (cancelled, worker lost)."""
     Path(log_path).parent.mkdir(parents=True, exist_ok=True)
     with open(log_path, "ab") as log:
-        proc = subprocess.Popen(child_command(argv), stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
+        proc = subprocess.Popen(parent_death_argv(argv), stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
                                 start_new_session=True, env=env)
     try:
         return proc.wait()
@@ -319,7 +302,7 @@ class ServiceRunner:
             time.sleep(restart_delay_s)   # no tight loop of a service that dies at start
         for path, text in files.items():
             _materialize(path, text)
-        self.proc = subprocess.Popen(child_command(argv), stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+        self.proc = subprocess.Popen(parent_death_argv(argv), stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                                      stderr=subprocess.STDOUT, start_new_session=True,
                                      cwd=cwd if os.path.isdir(cwd) else None, env={**os.environ, **env})
         what = "restarted" if self.restarted else "started"
@@ -373,66 +356,56 @@ class ServiceRunner:
         return {"pid": self.proc.pid, "code": self.proc.returncode, "killed": killed}
 
 
-# ----------------------------------------------------------------- the driver
-class _Placed:
-    """The driver's view of one service."""
+# ----------------------------------------------------------------- the placement
+class _Placed(Member):
+    """The driver's view of one service placed as a Ray actor."""
 
     def __init__(self, spec: ServiceSpec, options: dict):
-        self.spec = spec
+        super().__init__(spec)
         self.options = options
         self.handle = None
         self.state = "placing"     # placing, running, restarting, done, failed, stopped
         self.since = time.monotonic()
-        self.pid: int | None = None
+        self._pid: int | None = None
         self.node = self.host = None
-        self.starts = 0
-        self.last_code: int | None = None
+
+    @property
+    def pid(self) -> int | None:
+        return self._pid
 
 
-class RayRun:
-    """The services of one run as Ray actors; ``run()`` places them, keeps the
-    live line and the run directory's records, and shuts everything down."""
+class RayRun(RunDriver):
+    """The services of one run as Ray actors: the Ray placement of
+    ``deploy.driver.RunDriver`` (which keeps the live line and the run
+    directory's records and runs the loop). Ray restarts a crashed service
+    (``max_restarts``); this class places, watches and stops them."""
+
+    label, label_error = "ray", "ray driver"
+    down_word, down_states = "waiting", ("placing", "restarting", "failed")
 
     def __init__(self, ray, specs: Sequence[ServiceSpec], run_dir: str | Path, placement: RayPlacement, *,
                  files: dict[str, str], cwd: str, out=None):
+        super().__init__([_Placed(s, placement.request(s.name)) for s in specs], run_dir, placement, out=out)
         self.ray, self.placement = ray, placement
-        self.paths = RunDir(run_dir)
-        self.paths.logs.mkdir(parents=True, exist_ok=True)
+        self.services: list[_Placed] = self.members
         self.files, self.cwd = files, cwd
-        self.out = out if out is not None else sys.stderr
-        self.services = [_Placed(s, placement.request(s.name)) for s in specs]
-        self.outcome: tuple[int, str] | None = None
-        self.signals: list[int] = []
         self.refs: dict = {}       # pending ObjectRef -> (service, "info" | "wait")
         self.sink = None
         self.sink_name = f"sage-logs-{os.getpid()}-{time.time_ns()}"   # unique in this driver's namespace
         self.driver_node = ray.get_runtime_context().get_node_id()
 
     # ------------------------------------------------------------- records
-    def event(self, kind: str, **fields) -> None:
-        with open(self.paths.supervisor_events, "a") as f:
-            f.write(json.dumps({"t": time.time(), "event": kind, **fields}) + "\n")
+    def start_fields(self) -> dict:
+        return {"placer": "ray", "pid": os.getpid(), "driver_node": self.driver_node}
 
-    def _finish(self, code: int, message: str) -> None:
-        if self.outcome is None:
-            self.outcome = (code, message)
+    def member_status(self, p: _Placed) -> dict:
+        return {**super().member_status(p), "node": p.node, "host": p.host, "resources": p.options}
 
-    def summary(self) -> str:
-        running = sum(p.state == "running" for p in self.services)
-        restarts = sum(max(p.starts - 1, 0) for p in self.services)
-        nodes = len({p.node for p in self.services if p.state == "running"})
-        down = [p.spec.name for p in self.services if p.state in ("placing", "restarting", "failed")]
-        text = f"procs {running}/{len(self.services)} | restarts {restarts} | nodes {nodes}"
-        return text + (" | waiting " + ",".join(down) if down else "")
+    def summary_extra(self) -> str:
+        return f" | nodes {len({p.node for p in self.services if p.state == 'running'})}"
 
-    def write_status(self, board: StatusBoard | None) -> None:
-        snap = {"t": time.time(), "placer": "ray",
-                "services": {p.spec.name: {"state": p.state, "pid": p.pid, "starts": p.starts,
-                                           "last_code": p.last_code, "node": p.node, "host": p.host,
-                                           "resources": p.options}
-                             for p in self.services},
-                "status": board.snapshot() if board is not None else {}}
-        atomic_write_text(self.paths.status, json.dumps(snap, indent=1, default=str))
+    def idle(self) -> None:
+        pass   # poll_members waits in ray.wait
 
     # ------------------------------------------------------------- placing
     def _on_driver_node(self) -> dict:
@@ -469,10 +442,9 @@ class RayRun:
             self.poll()
         if p.spec.ready_tcp is None or p.state != "running":
             return
-        host, port = p.spec.ready_tcp
-        if wait_tcp_ready(host, port, self.placement.ready_timeout_s, give_up=lambda: bool(self.signals)):
-            self.event("ready", service=p.spec.name, endpoint=f"{host}:{port}")
-        elif not self.signals:
+        if not self.wait_ready(p, self.placement.ready_timeout_s, give_up=lambda: bool(self.signals)) \
+                and not self.signals:
+            host, port = p.spec.ready_tcp
             raise RuntimeError(f"{p.spec.name} did not accept connections on {host}:{port} within "
                                f"{self.placement.ready_timeout_s} s; see {self.paths.log(p.spec.name)}")
 
@@ -481,7 +453,7 @@ class RayRun:
         msg = (f"giving up: Ray could not place {p.spec.name} within {self.placement.placement_timeout_s:g} s "
                f"(it asks for {p.options}; free now: {self.ray.available_resources()})")
         self.event("give_up", service=p.spec.name, message=msg)
-        self._finish(EXIT_GAVE_UP, msg)
+        self.finish(EXIT_GAVE_UP, msg)
 
     def start(self) -> None:
         self.sink = self.ray.remote(LogSink).options(name=self.sink_name, num_cpus=0, max_restarts=0,
@@ -495,9 +467,8 @@ class RayRun:
                 self._create(p)
 
     # ------------------------------------------------------------- monitoring
-    def poll(self) -> int | None:
-        """Handle the answers that arrived: placements, (re)starts, exits; the exit
-        code once the run is over."""
+    def poll_members(self) -> None:
+        """Handle the answers that arrived: placements, (re)starts, exits."""
         if self.refs:
             ready, _ = self.ray.wait(list(self.refs), num_returns=len(self.refs), timeout=self.placement.poll_s)
         else:
@@ -515,10 +486,6 @@ class RayRun:
         for p in self.services:
             if p.state == "placing" and now - p.since > self.placement.placement_timeout_s:
                 self._placement_timeout(p)
-        if self.outcome is None and not any(p.spec.ends_run for p in self.services) \
-                and all(p.state == "done" for p in self.services if p.spec.stop_wave == 0):
-            self._finish(0, "all services finished")
-        return self.outcome[0] if self.outcome else None
 
     def _on_info(self, p: _Placed, ref) -> None:
         exc = self.ray.exceptions
@@ -533,7 +500,7 @@ class RayRun:
         if p.starts:
             self.event("restart", service=p.spec.name, attempt=p.starts + 1)
         p.starts += 1
-        p.state, p.pid, p.node, p.host = "running", info["pid"], info["node"], info["host"]
+        p.state, p._pid, p.node, p.host = "running", info["pid"], info["node"], info["host"]
         self.event("start", service=p.spec.name, pid=p.pid, attempt=p.starts, node=p.node, host=p.host,
                    argv=p.spec.argv)
         self.refs[p.handle.wait.remote()] = (p, "wait")
@@ -554,7 +521,7 @@ class RayRun:
         self.event("exit", service=p.spec.name, pid=p.pid, code=code, node=p.node)
         p.state = "done"
         if code == 0 and p.spec.ends_run:
-            self._finish(0, f"{p.spec.name} finished")
+            self.finish(0, f"{p.spec.name} finished")
 
     def _last_exit(self, p: _Placed) -> tuple[int, int] | None:
         try:
@@ -569,124 +536,46 @@ class RayRun:
                f"(Ray max_restarts {self.placement.max_restarts}; last exit code {p.last_code}): {reason}; "
                f"see {self.paths.log(p.spec.name)}")
         self.event("give_up", service=p.spec.name, code=p.last_code, restarts=max(p.starts - 1, 0), message=msg)
-        self._finish(EXIT_GAVE_UP, msg)
+        self.finish(EXIT_GAVE_UP, msg)
 
     # ------------------------------------------------------------- shutdown
-    def shutdown(self, reason: str) -> None:
-        """Stop the services wave by wave (router last): SIGTERM, SIGKILL after the
-        deadline (a second signal skips the wait), then kill their Ray actors."""
-        self.event("shutdown", reason=reason)
-        for wave in sorted({p.spec.stop_wave for p in self.services}):
-            group = [p for p in self.services if p.spec.stop_wave == wave and p.handle is not None]
-            stops = {}
-            for p in group:
-                if p.state in ("running", "restarting"):
-                    stops[p.handle.stop.remote(self.placement.term_deadline_s)] = p
-                    self.event("stop", service=p.spec.name, pid=p.pid, signal="SIGTERM")
-            n_signals = len(self.signals)
-            deadline = time.monotonic() + self.placement.term_deadline_s + 10.0
-            while stops and time.monotonic() < deadline and len(self.signals) == n_signals:
-                ready, _ = self.ray.wait(list(stops), num_returns=len(stops), timeout=0.2)
-                for ref in ready:
-                    p = stops.pop(ref)
-                    try:
-                        res = self.ray.get(ref)
-                    except self.ray.exceptions.RayError:
-                        continue
-                    if res["killed"]:
-                        self.event("kill", service=p.spec.name, pid=res["pid"], signal="SIGKILL")
-                    p.last_code = res["code"]
-                    self.event("exit", service=p.spec.name, pid=res["pid"], code=res["code"], node=p.node)
-            for p in group:   # the Ray actor goes too; its process, if still there, by pdeathsig
-                self.ray.kill(p.handle, no_restart=True)
-                if p.state != "failed":
-                    p.state = "stopped"
+    def stop_wave(self, group: list[_Placed]) -> None:
+        """SIGTERM, SIGKILL after the deadline (a second signal skips the wait), then
+        kill their Ray actors."""
+        group = [p for p in group if p.handle is not None]
+        stops = {}
+        for p in group:
+            if p.state in ("running", "restarting"):
+                stops[p.handle.stop.remote(self.placement.term_deadline_s)] = p
+                self.event("stop", service=p.spec.name, pid=p.pid, signal="SIGTERM")
+        n_signals = len(self.signals)
+        deadline = time.monotonic() + self.placement.term_deadline_s + 10.0
+        while stops and time.monotonic() < deadline and len(self.signals) == n_signals:
+            ready, _ = self.ray.wait(list(stops), num_returns=len(stops), timeout=0.2)
+            for ref in ready:
+                p = stops.pop(ref)
+                try:
+                    res = self.ray.get(ref)
+                except self.ray.exceptions.RayError:
+                    continue
+                if res["killed"]:
+                    self.event("kill", service=p.spec.name, pid=res["pid"], signal="SIGKILL")
+                p.last_code = res["code"]
+                self.event("exit", service=p.spec.name, pid=res["pid"], code=res["code"], node=p.node)
+        for p in group:   # the Ray actor goes too; its process, if still there, by pdeathsig
+            self.ray.kill(p.handle, no_restart=True)
+            if p.state != "failed":
+                p.state = "stopped"
+
+    def shutdown(self, reason: str = "shutdown") -> None:
+        """Stop the services wave by wave (router last), then the log sink."""
+        super().shutdown(reason)
         if self.sink is not None:
             try:
                 self.ray.get(self.sink.close.remote(), timeout=10.0)
             except Exception:  # noqa: BLE001 - the logs are as complete as they got
                 pass
             self.ray.kill(self.sink, no_restart=True)
-
-    # ------------------------------------------------------------- main loop
-    def run(self, open_status=None, on_finish=None, install_signals: bool = True) -> int:
-        old = {}
-        if install_signals:
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                old[sig] = signal.signal(sig, lambda signum, _f: self.signals.append(signum))
-        board: StatusBoard | None = None
-        live = LiveLine(self.out, self.placement.status_log_period_s)
-        reason = "error"
-        try:
-            self.event("supervisor_start", placer="ray", pid=os.getpid(), driver_node=self.driver_node,
-                       services=[p.spec.name for p in self.services], config=asdict(self.placement))
-            self.start()
-            board = open_status() if open_status and self.outcome is None else None
-            last_line = time.monotonic()
-            while True:
-                if self.signals:
-                    sig = self.signals[0]
-                    self._finish(128 + sig, f"stopped by {signal.Signals(sig).name}")
-                    reason = signal.Signals(sig).name
-                    break
-                if self.outcome is not None or self.poll() is not None:
-                    reason = "finished" if self.outcome[0] == 0 else "gave_up"
-                    if self.outcome[0] == 0 and on_finish is not None:
-                        on_finish(board)
-                    break
-                if time.monotonic() - last_line >= self.placement.status_period_s:
-                    last_line = time.monotonic()
-                    if board is not None:
-                        live.show(f"{board.line()} | {self.summary()}")
-                    self.write_status(board)
-        except BaseException as exc:
-            self._finish(EXIT_GAVE_UP, f"ray driver error: {exc}")
-            self.event("error", message=str(exc))
-            raise
-        finally:
-            self.shutdown(reason)
-            self.write_status(board)
-            if board is not None:
-                board.close()
-            live.close()
-            for sig, handler in old.items():
-                signal.signal(sig, handler)
-            code, message = self.outcome if self.outcome else (0, "stopped")
-            self.event("supervisor_exit", code=code, message=message)
-            print(f"ray: {message} (exit code {code}); events in {self.paths.supervisor_events}", file=self.out)
-        return code
-
-
-def prepare(config_path: str | Path, *, actors: int | None = None, roles: Sequence[str] = ROLES,
-            actor_ids: Sequence[int] | None = None, python: str = sys.executable
-            ) -> tuple[TrainConfig, list[ServiceSpec], Path]:
-    """The child config (as ``run_supervised`` writes it, with an absolute run
-    directory so it means the same on every node) and the service specs: the
-    local router first when the config names none."""
-    cfg = TrainConfig.load(config_path)
-    if actors is not None:
-        cfg.actors = int(actors)
-    cfg.mode = "supervised"                  # one process per service
-    cfg.actor.exit_on_unhealthy = True       # an actor cut off from the shield exits; Ray restarts it
-    cfg.run_dir = str(Path(cfg.run_dir).resolve())
-    cfg.validate()
-    ids = list(actor_ids) if actor_ids is not None else list(range(cfg.actors))
-    run = RunDir(cfg.run_dir)
-    specs: list[ServiceSpec] = []
-    if not cfg.transport.connect:
-        tls = TlsFiles.from_transport(cfg.transport)
-        port = free_tcp_port()   # free on the driver's node, where the router is placed
-        certs = str(Path(tls.root_ca).resolve().parent) if tls is not None else None
-        specs.append(router_spec(port, python, tls_certs=certs, run_id=cfg.run_id,
-                                 max_message_bytes=cfg.message_bytes_bound(), actors=cfg.actors))
-        cfg.transport.connect = [f"{'tls' if tls is not None else 'tcp'}/127.0.0.1:{port}"]
-        cfg.transport.mode = "client"        # everything through the router (deploy/README.md)
-    elif cfg.transport.mode != "client":
-        print(f"ray: warning: transport.mode is {cfg.transport.mode!r}; services attached to a router should use "
-              "\"client\" (deploy/README.md)", file=sys.stderr)
-    child_config = cfg.save(run.supervised_config)
-    specs += service_specs(child_config, roles, ids, python, shields=cfg.shields)
-    return cfg, specs, child_config
 
 
 def run_on_ray(config_path: str | Path, *, placement: RayPlacement | None = None, actors: int | None = None,
@@ -702,19 +591,12 @@ def run_on_ray(config_path: str | Path, *, placement: RayPlacement | None = None
     if actors is not None:
         saved.actors = int(actors)
     ray = connect(placement.address, cpus_for_local(placement, service_names(saved, roles, actor_ids)))
-    cfg, specs, child_config = prepare(config_path, actors=actors, roles=roles, actor_ids=actor_ids)
+    cfg, specs, child_config = prepare_run(config_path, actors=actors, roles=roles, actor_ids=actor_ids,
+                                           absolute=True, who="ray", out=out)
     cluster = check_cluster(ray, placement, [s.name for s in specs])
     files = {str(child_config): Path(child_config).read_text()}
     runner = RayRun(ray, specs, cfg.run_dir, placement, files=files, cwd=os.getcwd(), out=out)
     print(f"ray: run {cfg.run_id} on {cluster['nodes']} node(s) ({', '.join(cluster['hosts'])}), "
           f"{len(specs)} services ({', '.join(s.name for s in specs)}), router {cfg.transport.connect[0]}, "
           f"run dir {cfg.run_dir}", file=out, flush=True)
-    tls = TlsFiles.from_transport(cfg.transport)
-    board = StatusBoard(cfg.run_id, stale_after_s=max(5.0, 5 * cfg.status_period_s))
-
-    def on_finish(status):
-        if status is not None:
-            status.stop_run()   # every service of the run stops, wherever it is
-
-    return runner.run(lambda: board.subscribe(cfg.transport.connect, tls=tls), on_finish,
-                      install_signals=install_signals)
+    return run_with_status(runner, cfg, install_signals)

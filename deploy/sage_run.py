@@ -20,7 +20,8 @@ from typing import Sequence
 from common.rundir import RunDir
 from common.status import StatusBoard
 from common.transport import TlsFiles
-from deploy.supervisor import ServiceSpec, Supervisor, SupervisorConfig, free_tcp_port
+from deploy.driver import RunDriver, free_tcp_port
+from deploy.supervisor import ServiceSpec, Supervisor, SupervisorConfig
 from services.config import TrainConfig
 from services.launcher import ROLES, entry_argv, run_members
 
@@ -78,6 +79,64 @@ def router_spec(port: int, python: str = sys.executable, host: str = "127.0.0.1"
     return ServiceSpec("router", argv, stop_wave=1, ready_tcp=(host, port))
 
 
+def prepare_run(config_path: str | Path, *, actors: int | None = None, roles: Sequence[str] = ROLES,
+                actor_ids: Sequence[int] | None = None, python: str = sys.executable, absolute: bool = False,
+                who: str = "supervisor", out=None) -> tuple[TrainConfig, list[ServiceSpec], Path]:
+    """Every placement's preparation of a run: the child config the services read
+    (``<run_dir>/supervised_config.json``: one process per service, an actor cut
+    off from the shield exits to be restarted) and the service specs, the local
+    router first when the config names none (a free 127.0.0.1 port, every member
+    a client of it). ``absolute``: the run directory and the certificates as
+    absolute paths, so the config means the same on every node (Ray)."""
+    cfg = TrainConfig.load(config_path)
+    if actors is not None:
+        cfg.actors = int(actors)
+    cfg.mode = "supervised"
+    cfg.actor.exit_on_unhealthy = True  # an actor cut off from the shield exits; the placement restarts it
+    if absolute:
+        cfg.run_dir = str(Path(cfg.run_dir).resolve())
+    cfg.validate()
+    ids = list(actor_ids) if actor_ids is not None else list(range(cfg.actors))
+    run = RunDir(cfg.run_dir)
+    specs: list[ServiceSpec] = []
+    tls = TlsFiles.from_transport(cfg.transport)
+    if not cfg.transport.connect:
+        port = free_tcp_port()   # free on the driver's node, where the router is placed
+        # with TLS configured the local router uses the folder of the run's CA (certs/ca.pem)
+        ca = Path(tls.root_ca) if tls is not None else None
+        if ca is not None and absolute:
+            ca = ca.resolve()
+        specs.append(router_spec(port, python, tls_certs=str(ca.parent) if ca else None, run_id=cfg.run_id,
+                                 max_message_bytes=cfg.message_bytes_bound(), actors=cfg.actors))
+        cfg.transport.connect = [f"{'tls' if tls is not None else 'tcp'}/127.0.0.1:{port}"]
+        # client mode: everything goes through the router. Peers with gossip
+        # off (common/transport.py) attached to one router do not hear each other.
+        cfg.transport.mode = "client"
+    elif cfg.transport.mode != "client":
+        print(f"{who}: warning: transport.mode is {cfg.transport.mode!r}; services attached to a router "
+              "should use \"client\" (deploy/README.md)", file=out or sys.stderr)
+    child_config = cfg.save(run.supervised_config)
+    specs += service_specs(child_config, roles, ids, python, shields=cfg.shields)
+    return cfg, specs, child_config
+
+
+def run_with_status(driver: RunDriver, cfg: TrainConfig, install_signals: bool = True) -> int:
+    """``driver.run`` with the services' heartbeats as its status line; when the
+    learner reaches its budget a ``control`` stop goes to every service of the
+    run, wherever it is (remote actors included)."""
+    tls = TlsFiles.from_transport(cfg.transport)
+    board = StatusBoard(cfg.run_id, stale_after_s=max(5.0, 5 * cfg.status_period_s))
+
+    def open_status():
+        return board.subscribe(cfg.transport.connect, tls=tls)
+
+    def on_finish(status):
+        if status is not None:
+            status.stop_run()
+
+    return driver.run(open_status, on_finish, install_signals=install_signals)
+
+
 def run_supervised(config_path: str | Path, *, actors: int | None = None, roles: Sequence[str] = ROLES,
                    actor_ids: Sequence[int] | None = None, supervisor: SupervisorConfig | None = None,
                    install_signals: bool = True, out=None) -> int:
@@ -90,41 +149,8 @@ def run_supervised(config_path: str | Path, *, actors: int | None = None, roles:
     local router is started on a free 127.0.0.1 port. The config the children
     read is written to ``<run_dir>/supervised_config.json``.
     """
-    cfg = TrainConfig.load(config_path)
-    if actors is not None:
-        cfg.actors = int(actors)
-    cfg.mode = "supervised"
-    cfg.actor.exit_on_unhealthy = True  # an actor cut off from the shield exits; we restart it
-    cfg.validate()
-    ids = list(actor_ids) if actor_ids is not None else list(range(cfg.actors))
-    run = RunDir(cfg.run_dir)
-    specs: list[ServiceSpec] = []
-    tls = TlsFiles.from_transport(cfg.transport)
-    if not cfg.transport.connect:
-        port = free_tcp_port()
-        # with TLS configured the local router uses the folder of the run's CA (certs/ca.pem)
-        certs = str(Path(tls.root_ca).parent) if tls is not None else None
-        specs.append(router_spec(port, tls_certs=certs, run_id=cfg.run_id, max_message_bytes=cfg.message_bytes_bound(),
-                                 actors=cfg.actors))
-        cfg.transport.connect = [f"{'tls' if tls is not None else 'tcp'}/127.0.0.1:{port}"]
-        # client mode: everything goes through the router. Peers with gossip
-        # off (common/transport.py) attached to one router do not hear each other.
-        cfg.transport.mode = "client"
-    elif cfg.transport.mode != "client":
-        print(f"supervisor: warning: transport.mode is {cfg.transport.mode!r}; services attached to a router "
-              "should use \"client\" (deploy/README.md)", file=out or sys.stderr)
-    child_config = cfg.save(run.supervised_config)
-    specs += service_specs(child_config, roles, ids, shields=cfg.shields)
-    sup = Supervisor(specs, run.root, supervisor, out=out)
-    board = StatusBoard(cfg.run_id, stale_after_s=max(5.0, 5 * cfg.status_period_s))
+    cfg, specs, _ = prepare_run(config_path, actors=actors, roles=roles, actor_ids=actor_ids, out=out)
+    sup = Supervisor(specs, cfg.run_dir, supervisor, out=out)
     print(f"supervisor: run {cfg.run_id}, {len(specs)} processes ({', '.join(s.name for s in specs)}), "
-          f"router {cfg.transport.connect[0]}, run dir {run.root}", file=sup.out, flush=True)
-
-    def open_status():
-        return board.subscribe(cfg.transport.connect, tls=tls)
-
-    def on_finish(status):
-        if status is not None:
-            status.stop_run()  # remote actors of this run stop too
-
-    return sup.run(open_status, on_finish, install_signals=install_signals)
+          f"router {cfg.transport.connect[0]}, run dir {sup.paths.root}", file=sup.out, flush=True)
+    return run_with_status(sup, cfg, install_signals)

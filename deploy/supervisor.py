@@ -1,5 +1,8 @@
-"""A generic process supervisor: runs ``ServiceSpec`` commands, each as its
-own process group (what SAGE runs is ``deploy/sage_run.py``), and:
+"""The local placement: a generic process supervisor that runs ``ServiceSpec``
+commands, each as its own process group of this host (what SAGE runs is
+``deploy/sage_run.py``). The run's records, loop, signals and shutdown waves
+are the run driver's (``deploy/driver.py``), shared with the Ray placement;
+what is this placement's own is where and how a member runs and restarts. It:
 
 * restarts a service that crashed (non-zero exit or killed) after an
   exponential backoff, and gives up cleanly -- everything stopped, exit code
@@ -23,36 +26,22 @@ inherits a live Zenoh session.
 """
 from __future__ import annotations
 
-import json
 import os
 import signal
-import socket
 import subprocess
 import sys
-import threading
 import time
 from collections import deque
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Protocol, Sequence
+from typing import Sequence
 
-from common.rundir import RunDir, atomic_write_text
-from common.status import EXIT_FATAL, LiveLine
+from common.status import EXIT_FATAL
+from deploy.driver import (EXIT_GAVE_UP, Member, RunDriver, StatusSource, free_tcp_port, kill_group,
+                           parent_death_argv, wait_tcp_ready)
 
-EXIT_GAVE_UP = 1
-
-
-def wait_tcp_ready(host: str, port: int, timeout_s: float, give_up: Callable[[], bool] = lambda: False) -> bool:
-    """Until ``host:port`` accepts a TCP connection (True), ``timeout_s`` passes
-    or ``give_up()`` is true (False); ``give_up`` may also raise."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline and not give_up():
-        try:
-            with socket.create_connection((host, port), timeout=0.5):
-                return True
-        except OSError:
-            time.sleep(0.05)
-    return False
+__all__ = ["EXIT_GAVE_UP", "ServiceSpec", "StatusSource", "Supervisor", "SupervisorConfig", "free_tcp_port",
+           "wait_tcp_ready"]
 
 
 @dataclass
@@ -97,59 +86,36 @@ class ServiceSpec:
             raise ValueError(f"bad service spec {self.name!r}: need a file-safe name and a command")
 
 
-class StatusSource(Protocol):
-    def line(self) -> str: ...
-    def snapshot(self) -> dict: ...
-    def close(self) -> None: ...
-
-
-class _Child:
+class _Child(Member):
     """One supervised service and its restart bookkeeping."""
 
     def __init__(self, spec: ServiceSpec):
-        self.spec = spec
+        super().__init__(spec)         # state: pending, running, backoff, done, failed, stopped
         self.proc: subprocess.Popen | None = None
-        self.state = "pending"         # pending, running, backoff, done, failed, stopped
         self.started = 0.0
         self.crashes = 0               # consecutive crashes (backoff exponent)
         self.restarts: deque[float] = deque()  # restart times within the window (budget)
         self.next_start = 0.0
-        self.starts = 0
-        self.last_code: int | None = None
+
+    @property
+    def pid(self) -> int | None:
+        return self.proc.pid if self.proc else None
 
 
-class Supervisor:
-    """Runs ``specs`` as child process groups; see the module docstring.
-
-    ``run()`` is the blocking loop with signal handling; ``start()``,
-    ``poll()`` and ``shutdown()`` are its steps, usable on their own (tests,
-    ``sage bench system``).
+class Supervisor(RunDriver):
+    """Runs ``specs`` as child process groups of this machine: the local
+    placement of ``deploy.driver.RunDriver`` (which writes the records and runs
+    the loop); see the module docstring. ``start()``, ``poll()`` and
+    ``shutdown()`` are usable on their own (tests, ``sage bench system``).
     """
 
     def __init__(self, specs: Sequence[ServiceSpec], run_dir: str | Path, cfg: SupervisorConfig | None = None,
                  *, cwd: str | None = None, env: dict | None = None, out=None):
-        names = [s.name for s in specs]
-        if len(set(names)) != len(names):
-            raise ValueError(f"duplicate service names in {names}")
-        self.cfg = (cfg or SupervisorConfig()).validate()
-        self.children = [_Child(s) for s in specs]
-        self.run_dir = Path(run_dir)
-        self.paths = RunDir(run_dir)
+        super().__init__([_Child(s) for s in specs], run_dir, (cfg or SupervisorConfig()).validate(), out=out)
+        self.children: list[_Child] = self.members
         self.log_dir = self.paths.logs
-        self.log_dir.mkdir(parents=True, exist_ok=True)
-        self.events_path = self.paths.supervisor_events
         self.cwd = cwd
         self.env = env
-        self.out = out if out is not None else sys.stderr
-        self.outcome: tuple[int, str] | None = None
-        self.signals: deque[int] = deque()
-        self._events_lock = threading.Lock()
-
-    # ------------------------------------------------------------- events
-    def event(self, kind: str, **fields) -> None:
-        row = {"t": time.time(), "event": kind, **fields}
-        with self._events_lock, open(self.events_path, "a") as f:
-            f.write(json.dumps(row) + "\n")
 
     def child(self, name: str) -> _Child:
         for c in self.children:
@@ -159,9 +125,7 @@ class Supervisor:
 
     # ------------------------------------------------------------- launching
     def _launch(self, c: _Child) -> None:
-        argv = list(c.spec.argv)
-        if self.cfg.parent_death_signal and sys.platform.startswith("linux"):
-            argv = [sys.executable, "-m", "deploy.pdeathsig", str(os.getpid()), "--", *argv]
+        argv = parent_death_argv(c.spec.argv, sys.executable) if self.cfg.parent_death_signal else list(c.spec.argv)
         with open(self.paths.log(c.spec.name), "ab") as log:
             # own session = own process group: a terminal's Ctrl-C reaches only the
             # supervisor, and killpg() reaches the service and anything it spawned
@@ -178,11 +142,10 @@ class Supervisor:
                                    f"see {self.paths.log(c.spec.name)}")
             return False
 
-        host, port = c.spec.ready_tcp
-        if not wait_tcp_ready(host, port, self.cfg.ready_timeout_s, give_up=exited):
+        if not self.wait_ready(c, self.cfg.ready_timeout_s, give_up=exited):
+            host, port = c.spec.ready_tcp
             raise RuntimeError(f"{c.spec.name} did not accept connections on {host}:{port} "
                                f"within {self.cfg.ready_timeout_s} s")
-        self.event("ready", service=c.spec.name, endpoint=f"{host}:{port}")
 
     def start(self) -> None:
         for c in self.children:
@@ -191,15 +154,9 @@ class Supervisor:
                 self._wait_ready(c)
 
     # ------------------------------------------------------------- monitoring
-    def _kill_group(self, pid: int, sig: int) -> None:
-        try:
-            os.killpg(pid, sig)  # the child leads its own group: pgid == pid
-        except (ProcessLookupError, PermissionError):
-            pass
-
     def _reaped(self, c: _Child, code: int, how: str = "exit") -> float:
         pid = c.proc.pid
-        self._kill_group(pid, signal.SIGKILL)  # whatever the service left behind in its group
+        kill_group(pid, signal.SIGKILL)  # whatever the service left behind in its group
         c.proc, c.last_code = None, code
         uptime = time.monotonic() - c.started
         self.event(how, service=c.spec.name, pid=pid, code=code, uptime_s=round(uptime, 3))
@@ -215,10 +172,6 @@ class Supervisor:
             lines = []
         return lines[-1].strip()[-600:] if lines else f"exit code {EXIT_FATAL}; see {self.paths.log(name)}"
 
-    def _finish(self, code: int, message: str) -> None:
-        if self.outcome is None:
-            self.outcome = (code, message)
-
     def _crashed(self, c: _Child, code: int, uptime: float) -> None:
         now = time.monotonic()
         if uptime >= self.cfg.stable_after_s:
@@ -232,7 +185,7 @@ class Supervisor:
                    f"{self.cfg.restart_window_s:g} s (last exit code {code}); "
                    f"see {self.paths.log(c.spec.name)}")
             self.event("give_up", service=c.spec.name, code=code, restarts=len(c.restarts), message=msg)
-            self._finish(EXIT_GAVE_UP, msg)
+            self.finish(EXIT_GAVE_UP, msg)
             return
         delay = self.cfg.backoff(c.crashes)
         c.restarts.append(now)
@@ -240,8 +193,8 @@ class Supervisor:
         self.event("backoff", service=c.spec.name, code=code, delay_s=delay, consecutive=c.crashes,
                    restarts_in_window=len(c.restarts))
 
-    def poll(self) -> int | None:
-        """Reap exits, schedule and perform restarts; the exit code once the run is over."""
+    def poll_members(self) -> None:
+        """Reap exits, schedule and perform restarts."""
         for c in self.children:
             if self.outcome is not None:
                 break
@@ -253,128 +206,43 @@ class Supervisor:
                 if code == 0:
                     c.state = "done"
                     if c.spec.ends_run:
-                        self._finish(0, f"{c.spec.name} finished")
+                        self.finish(0, f"{c.spec.name} finished")
                 elif code == EXIT_FATAL:   # a fault restarting cannot fix: stop, with the service's own line
                     c.state = "failed"
                     msg = f"{c.spec.name} stopped the run: {self._last_line(c.spec.name)}"
                     self.event("fatal", service=c.spec.name, code=code, message=msg)
-                    self._finish(EXIT_FATAL, msg)
+                    self.finish(EXIT_FATAL, msg)
                 else:
                     self._crashed(c, code, uptime)
             elif c.state == "backoff" and time.monotonic() >= c.next_start:
                 self.event("restart", service=c.spec.name, attempt=c.starts + 1)
                 self._launch(c)
-        if self.outcome is None and not any(c.spec.ends_run for c in self.children) \
-                and all(c.state == "done" for c in self.children if c.spec.stop_wave == 0):
-            self._finish(0, "all services finished")
-        return self.outcome[0] if self.outcome else None
 
     # ------------------------------------------------------------- shutdown
-    def shutdown(self, reason: str = "shutdown") -> None:
-        """SIGTERM every running child group, wave by wave; SIGKILL after the deadline."""
-        self.event("shutdown", reason=reason)
-        for wave in sorted({c.spec.stop_wave for c in self.children}):
-            group = [c for c in self.children if c.spec.stop_wave == wave]
-            for c in group:
-                if c.state in ("backoff", "pending"):
-                    c.state = "stopped"  # a pending restart is cancelled
-            running = [c for c in group if c.proc is not None]
-            for c in running:
-                self._kill_group(c.proc.pid, signal.SIGTERM)
-                self.event("stop", service=c.spec.name, pid=c.proc.pid, signal="SIGTERM")
-            deadline = time.monotonic() + self.cfg.term_deadline_s
-            n_signals = len(self.signals)
-            while running and time.monotonic() < deadline and len(self.signals) == n_signals:
-                for c in list(running):
-                    code = c.proc.poll()
-                    if code is not None:
-                        self._reaped(c, code)
-                        c.state = "stopped"
-                        running.remove(c)
-                if running:
-                    time.sleep(min(self.cfg.poll_s, 0.05))
-            for c in running:  # past the deadline (or a second signal): no more waiting
-                pid = c.proc.pid
-                self._kill_group(pid, signal.SIGKILL)
-                self.event("kill", service=c.spec.name, pid=pid, signal="SIGKILL")
-                c.proc.wait()
-                self._reaped(c, c.proc.returncode)
-                c.state = "stopped"
-
-    # ------------------------------------------------------------- main loop
-    def run(self, status_factory: Callable[[], StatusSource | None] | None = None,
-            on_finish: Callable[[StatusSource | None], None] | None = None,
-            install_signals: bool = True) -> int:
-        """Start everything, supervise until the run ends, a service exhausts
-        its restart budget, or a signal arrives; always shut down cleanly.
-
-        ``status_factory`` is called once the children are launched (so the
-        supervisor's own Zenoh session opens after every fork);
-        ``on_finish(status)`` runs before the shutdown when the run ended normally.
-        """
-        old = {}
-        if install_signals:
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                old[sig] = signal.signal(sig, lambda signum, _f: self.signals.append(signum))
-        status: StatusSource | None = None
-        reason = "error"
-        live = LiveLine(self.out, self.cfg.status_log_period_s)
-        try:
-            self.event("supervisor_start", pid=os.getpid(), services=[c.spec.name for c in self.children],
-                       config=asdict(self.cfg))
-            self.start()
-            status = status_factory() if status_factory else None
-            last_line = time.monotonic()
-            while True:
-                if self.signals:
-                    sig = self.signals[0]
-                    self._finish(128 + sig, f"stopped by {signal.Signals(sig).name}")
-                    reason = signal.Signals(sig).name
-                    break
-                if self.poll() is not None:
-                    reason = "finished" if self.outcome[0] == 0 else "gave_up"
-                    if self.outcome[0] == 0 and on_finish is not None:
-                        on_finish(status)
-                    break
-                now = time.monotonic()
-                if status is not None and now - last_line >= self.cfg.status_period_s:
-                    last_line = now
-                    live.show(f"{status.line()} | {self.summary()}")
-                    self._write_status(status)
-                time.sleep(self.cfg.poll_s)
-        except BaseException as exc:
-            self._finish(EXIT_GAVE_UP, f"supervisor error: {exc}")
-            self.event("error", message=str(exc))
-            raise
-        finally:
-            self.shutdown(reason)
-            if status is not None:
-                self._write_status(status)
-                status.close()
-            live.close()
-            for sig, handler in old.items():
-                signal.signal(sig, handler)
-            code, message = self.outcome if self.outcome else (0, "stopped")
-            self.event("supervisor_exit", code=code, message=message)
-            print(f"supervisor: {message} (exit code {code}); events in {self.events_path}", file=self.out)
-        return code
-
-    def summary(self) -> str:
-        running = sum(c.state == "running" for c in self.children)
-        restarts = sum(max(c.starts - 1, 0) for c in self.children)
-        down = [c.spec.name for c in self.children if c.state in ("backoff", "failed")]
-        text = f"procs {running}/{len(self.children)} | restarts {restarts}"
-        return text + (" | down " + ",".join(down) if down else "")
-
-    def _write_status(self, status: StatusSource) -> None:
-        snap = {"t": time.time(), "services": {c.spec.name: {"state": c.state, "pid": c.proc.pid if c.proc else None,
-                                                              "starts": c.starts, "last_code": c.last_code}
-                                               for c in self.children},
-                "status": status.snapshot()}
-        atomic_write_text(self.paths.status, json.dumps(snap, indent=1, default=str))
-
-
-def free_tcp_port(host: str = "127.0.0.1") -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((host, 0))
-        return s.getsockname()[1]
+    def stop_wave(self, group: list[_Child]) -> None:
+        """SIGTERM every running child group of the wave; SIGKILL after the deadline."""
+        for c in group:
+            if c.state in ("backoff", "pending"):
+                c.state = "stopped"  # a pending restart is cancelled
+        running = [c for c in group if c.proc is not None]
+        for c in running:
+            kill_group(c.proc.pid, signal.SIGTERM)
+            self.event("stop", service=c.spec.name, pid=c.proc.pid, signal="SIGTERM")
+        deadline = time.monotonic() + self.cfg.term_deadline_s
+        n_signals = len(self.signals)
+        while running and time.monotonic() < deadline and len(self.signals) == n_signals:
+            for c in list(running):
+                code = c.proc.poll()
+                if code is not None:
+                    self._reaped(c, code)
+                    c.state = "stopped"
+                    running.remove(c)
+            if running:
+                time.sleep(min(self.cfg.poll_s, 0.05))
+        for c in running:  # past the deadline (or a second signal): no more waiting
+            pid = c.proc.pid
+            kill_group(pid, signal.SIGKILL)
+            self.event("kill", service=c.spec.name, pid=pid, signal="SIGKILL")
+            c.proc.wait()
+            self._reaped(c, c.proc.returncode)
+            c.state = "stopped"
