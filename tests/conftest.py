@@ -20,7 +20,7 @@ TIERS = {
         "payload_points", "progress", "proposal", "proposal_kernels", "protocol", "qp", "qp_cli", "qp_properties",
         "readme", "report", "report_ci", "row_kernels", "safety", "safety_honesty", "safety_kkt",
         "safety_profiles", "sail", "sail_kernel", "sparse_tree", "stats", "talo", "talo_fast", "tree",
-        "tree_kernel", "wire", "wire_fuzz",
+        "tree_grad_kernels", "tree_kernel", "wire", "wire_fuzz",
     },
     "integration": {
         "actor_pruned_rows", "api", "checkpoint", "cli", "config", "env_layouts", "hostile", "human_slot",

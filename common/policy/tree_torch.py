@@ -12,6 +12,7 @@ from collections.abc import Mapping
 import numpy as np
 import torch
 from torch import nn
+from torch.autograd.function import once_differentiable
 
 from common.policy.tree import (
     FORMAT_VERSION,
@@ -22,6 +23,7 @@ from common.policy.tree import (
     TreeOutput,
     validate_params,
 )
+from common.policy.tree_grad_kernels import tree_st_forward, tree_st_hvp, tree_st_vjp
 
 
 def top_k_mask(x: torch.Tensor, k: int) -> torch.Tensor:
@@ -96,29 +98,105 @@ def st_leaf_weights(margins, tau: float, depth: int):
     return weight
 
 
+def _stacked(trees, name):
+    return torch.stack([getattr(t, name) for t in trees]) if len(trees) > 1 else getattr(trees[0], name)[None]
+
+
 def forest_forward(trees, obs, tau: float):
     """N trees of one shape on obs [N, B, O]: action [N, B, A] (parameter dtype), leaf
     [N, B], nodes and sides [N, B, D]. The action is sum_l weight_l (c_a + s_a tanh(K_l o
     + beta_l)) (Eq. hard_tree_policy), written c_a + s_a sum_l weight_l tanh(.): the same
     value (the weights are exactly one-hot) and the same derivatives (sum_l weight_l is
-    identically 1), with the leaf sum as one batched matrix product."""
+    identically 1). The straight-through top-k and the split vectors' normalization run
+    here in torch; the routed leaf sum, its gradient and its double backward in the
+    compiled ``TreeCore`` (common/policy/tree_grad_kernels.py), which
+    ``forest_forward_reference`` (the same function as one autograd graph) is tested against."""
+    if not float(tau) > 0:
+        raise ValueError(f"tree: tau must be > 0, got {tau}")
+    first = trees[0]
+    W = st_top_k(_stacked(trees, "W"), first.split_k).double()
+    w = W / torch.linalg.vector_norm(W, dim=-1, keepdim=True)                  # Eq. (hard_gate)
+    K = st_top_k(_stacked(trees, "K"), first.leaf_k).double()
+    mixed, leaf, nodes, sides = TreeCore.apply(w, _stacked(trees, "b").double(), K,
+                                               _stacked(trees, "beta").double(), obs.double(),
+                                               float(tau), first.depth)
+    action = _stacked(trees, "c_a").double()[:, None] + _stacked(trees, "s_a").double()[:, None] * mixed
+    return action.to(first.K.dtype), leaf, nodes, sides
+
+
+def forest_forward_reference(trees, obs, tau: float):
+    """``forest_forward`` as one autograd graph over every leaf (all tree arithmetic in
+    float64): the reference ``TreeCore``'s kernels are tested against."""
     if not float(tau) > 0:
         raise ValueError(f"tree: tau must be > 0, got {tau}")
     first = trees[0]
     obs = obs.double()        # dtype policy: all tree arithmetic in float64
-
-    def stacked(name):
-        return torch.stack([getattr(t, name) for t in trees]) if len(trees) > 1 \
-            else getattr(first, name)[None]
-
-    margins = gate_margins(st_top_k(stacked("W"), first.split_k), stacked("b"), obs)
+    margins = gate_margins(st_top_k(_stacked(trees, "W"), first.split_k), _stacked(trees, "b"), obs)
     leaf, nodes, sides = route(margins.detach(), first.depth)
     weight = st_leaf_weights(margins, tau, first.depth)                      # [N, B, L]
-    squashed = torch.tanh(leaf_preactivations(st_top_k(stacked("K"), first.leaf_k), stacked("beta"), obs))
+    squashed = torch.tanh(leaf_preactivations(st_top_k(_stacked(trees, "K"), first.leaf_k),
+                                              _stacked(trees, "beta"), obs))
     N, B, L, A = squashed.shape
     mixed = torch.bmm(weight.reshape(N * B, 1, L), squashed.reshape(N * B, L, A)).reshape(N, B, A)
-    action = stacked("c_a").double()[:, None] + stacked("s_a").double()[:, None] * mixed
+    action = _stacked(trees, "c_a").double()[:, None] + _stacked(trees, "s_a").double()[:, None] * mixed
     return action.to(first.K.dtype), leaf, nodes, sides
+
+
+def _numpy(x):
+    return x.detach().contiguous().numpy()
+
+
+class TreeCore(torch.autograd.Function):
+    """The routed leaf sum mix = sum_l weight_l tanh(K_l o + beta_l) of unit split vectors
+    w [N,I,O], thresholds b [N,I], gains K [N,L,A,O], offsets beta [N,L,A] (float64) on obs
+    [N,B,O]: returns (mix [N,B,A], leaf, nodes, sides). Its backward is ``TreeVJP``, itself
+    differentiable once (TALO's Hessian-vector product)."""
+
+    @staticmethod
+    def forward(ctx, w, b, K, beta, obs, tau, depth):
+        near = any(ctx.needs_input_grad[:4])   # the backward's arrays only where one will run
+        obs_np = _numpy(obs)
+        mix, margins, leaf, nodes, sides, _, t_near, g1 = tree_st_forward(
+            _numpy(w), _numpy(b), _numpy(K), _numpy(beta), obs_np, int(depth), float(tau), near)
+        ctx.save_for_backward(w, b, K, beta)
+        ctx.cache = (obs_np, margins, leaf, nodes, sides, t_near, g1, float(tau), int(depth),
+                     tuple(w.shape), tuple(K.shape))
+        out = [torch.from_numpy(v) for v in (leaf, nodes, sides)]
+        ctx.mark_non_differentiable(*out)
+        return (torch.from_numpy(mix), *out)
+
+    @staticmethod
+    def backward(ctx, g_mix, *_):
+        if g_mix is None:
+            return (None,) * 7
+        return (*TreeVJP.apply(g_mix, *ctx.saved_tensors, ctx.cache), None, None, None)
+
+
+class TreeVJP(torch.autograd.Function):
+    """grad of sum q . mix in (w, b, K, beta) (``tree_st_vjp``); its backward along a direction
+    V of those shapes is the double backward (``tree_st_hvp``): d/dq = the forward
+    derivative of mix along V, d/dtheta = Hess(q . mix) V. The parameters are inputs (the
+    forward reads them through the cache) so that autograd routes those terms to them."""
+
+    @staticmethod
+    def forward(ctx, q, w, b, K, beta, cache):
+        obs, _, leaf, nodes, sides, t_near, g1, _, _, shape_w, shape_K = cache
+        q_np = _numpy(q.double())
+        ctx.save_for_backward(K, beta)
+        ctx.q, ctx.cache, ctx.q_dtype = q_np, cache, q.dtype
+        gw, gb, gK, gbeta = tree_st_vjp(q_np, obs, leaf, nodes, sides, t_near, g1, shape_w, shape_K)
+        return tuple(torch.from_numpy(g) for g in (gw, gb, gK, gbeta))
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, *V):
+        K, beta = ctx.saved_tensors
+        obs, margins, _, _, _, t_near, _, tau, depth, shape_w, shape_K = ctx.cache
+        shapes = (shape_w, shape_w[:2], shape_K, shape_K[:3])
+        V = [np.zeros(shape) if v is None else _numpy(v.double()) for v, shape in zip(V, shapes)]
+        dmix, hw, hb, hK, hbeta = tree_st_hvp(ctx.q, *V, _numpy(K), _numpy(beta), obs, margins, t_near,
+                                              tau, depth)
+        return torch.from_numpy(dmix).to(ctx.q_dtype), *(torch.from_numpy(h) for h in (hw, hb, hK, hbeta)), None
 
 
 class HardObliqueTree(nn.Module):
