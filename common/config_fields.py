@@ -18,6 +18,7 @@ range, which such libraries leave to the caller anyway.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import types
@@ -39,7 +40,10 @@ def field_help(f: dataclasses.Field) -> str:
     return f.metadata.get("help", "") if f.metadata else ""
 
 
-def _hints(cls) -> dict:
+@functools.lru_cache(maxsize=None)
+def type_hints(cls) -> dict:
+    """``typing.get_type_hints(cls)``, once per class: it compiles every annotation
+    string anew on each call (82% of a ``sage suite --dry-run`` of 300 configs)."""
     return typing.get_type_hints(cls)
 
 
@@ -126,7 +130,7 @@ def from_mapping(cls, values: dict, prefix: str = "", base=None):
     if unknown:
         raise ValueError(f"unknown {prefix.rstrip('.') + ' ' if prefix else ''}config keys {unknown} "
                          f"({cls.__name__} has {', '.join(sorted(names))})")
-    hints = _hints(cls)
+    hints = type_hints(cls)
     out = {}
     for f in dataclasses.fields(cls):
         if f.name in values:
@@ -140,7 +144,7 @@ def check_fields(obj, prefix: str = "") -> None:
     """Every field of the dataclass ``obj`` has its annotated type, a finite value where
     it is a number, and lies in its declared range or choices; nested sections are
     checked in turn. A ``ValueError`` naming the first field that does not."""
-    hints = _hints(type(obj))
+    hints = type_hints(type(obj))
     for f in dataclasses.fields(obj):
         path = prefix + f.name
         value = getattr(obj, f.name)

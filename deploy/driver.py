@@ -104,6 +104,7 @@ class RunDriver:
     label = "supervisor"               # the final line's and the records' name for the placement
     label_error: str | None = None     # the outcome's words when the driver itself fails (default: label)
     down_word, down_states = "down", ("backoff", "failed")   # the live line's members not up
+    member_word = "procs"              # the live line's word for the members
 
     def __init__(self, members: Sequence[Member], run_dir: str | Path, cfg, *, out=None):
         names = [m.spec.name for m in members]
@@ -140,6 +141,10 @@ class RunDriver:
     def summary_extra(self) -> str:
         return ""
 
+    def final_line(self, status: StatusSource | None) -> str | None:
+        """The live line's last words (None: leave it as it was)."""
+        return None
+
     # ------------------------------------------------------------- records
     def event(self, kind: str, **fields) -> None:
         row = {"t": time.time(), "event": kind, **fields}
@@ -158,7 +163,7 @@ class RunDriver:
         running = sum(m.state == "running" for m in self.members)
         restarts = sum(max(m.starts - 1, 0) for m in self.members)
         down = [m.spec.name for m in self.members if m.state in self.down_states]
-        text = f"procs {running}/{len(self.members)} | restarts {restarts}{self.summary_extra()}"
+        text = f"{self.member_word} {running}/{len(self.members)} | restarts {restarts}{self.summary_extra()}"
         return text + (f" | {self.down_word} " + ",".join(down) if down else "")
 
     def write_status(self, status: StatusSource | None) -> None:
@@ -239,7 +244,7 @@ class RunDriver:
             self.write_status(status)
             if status is not None:
                 status.close()
-            live.close()
+            live.close(self.final_line(status))
             for sig, handler in old.items():
                 signal.signal(sig, handler)
             code, message = self.outcome if self.outcome else (0, "stopped")

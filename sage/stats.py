@@ -44,15 +44,18 @@ def _by_stratum(values: Iterable[float], strata: Iterable) -> list[np.ndarray]:
 
 
 def _ci(samples: list[np.ndarray], statistic: Callable, level: float, resamples: int, seed: int) -> list[float]:
-    """Percentile bootstrap CI of ``statistic(*samples)``, each sample resampled within itself.
+    """Percentile bootstrap CI of ``statistic(*samples, axis=-1)``, each sample resampled within
+    itself (``statistic`` reduces the last axis and keeps any leading ones).
     NaN where a sample has fewer than two values (nothing to resample there)."""
     if not samples or any(s.size < 2 for s in samples):
         return [float("nan"), float("nan")]
     if all(np.ptp(s) == 0 for s in samples):   # every resample is the same: the CI is the point
-        point = float(statistic(*samples))
+        point = float(statistic(*samples, axis=-1))
         return [point, point]
+    # vectorized: the statistic takes every resample at once along its leading axes (10,000
+    # resamples of a 300-run table in a few ms; a python call per resample took seconds)
     res = _st.bootstrap(tuple(samples), statistic, n_resamples=resamples, confidence_level=level,
-                        method="percentile", vectorized=False, random_state=np.random.default_rng(seed))
+                        method="percentile", vectorized=True, random_state=np.random.default_rng(seed))
     return [float(res.confidence_interval.low), float(res.confidence_interval.high)]
 
 
@@ -60,20 +63,21 @@ def aggregate_ci(values, strata, estimator: str = "mean", level: float = LEVEL, 
                  seed: int = SEED) -> dict:
     """{"estimate", "ci", "runs"} of the mean or IQM over all runs, CI stratified by ``strata``."""
     samples = _by_stratum(values, strata)
-    fn = {"mean": lambda x: float(np.mean(x)), "iqm": iqm}[estimator]
+    fn = {"mean": np.mean, "iqm": lambda x, axis: _st.trim_mean(x, 0.25, axis=axis)}[estimator]
 
-    def statistic(*xs):
-        return fn(np.concatenate(xs))
+    def statistic(*xs, axis=-1):
+        return fn(np.concatenate(xs, axis=axis), axis=axis)
 
     runs = int(sum(s.size for s in samples))
-    estimate = statistic(*samples) if runs else float("nan")
+    estimate = float(statistic(*samples)) if runs else float("nan")
     return {"estimate": estimate, "ci": _ci(samples, statistic, level, resamples, seed), "runs": runs}
 
 
-def _poi(x: np.ndarray, y: np.ndarray) -> float:
-    """P(X > Y) + 0.5 P(X = Y) over all pairs of one scenario's runs."""
-    diff = x[:, None] - y[None, :]
-    return float(np.mean((diff > 0) + 0.5 * (diff == 0)))
+def _poi(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """P(X > Y) + 0.5 P(X = Y) over all pairs of one scenario's runs (the last axis;
+    leading axes are resamples)."""
+    diff = x[..., :, None] - y[..., None, :]
+    return np.mean((diff > 0) + 0.5 * (diff == 0), axis=(-2, -1))
 
 
 def probability_of_improvement(x_values, x_strata, y_values, y_strata, level: float = LEVEL,
@@ -87,10 +91,10 @@ def probability_of_improvement(x_values, x_strata, y_values, y_strata, level: fl
     samples = [xs[g] for g in common] + [ys[g] for g in common]
     k = len(common)
 
-    def statistic(*s):
-        return float(np.mean([_poi(s[i], s[k + i]) for i in range(k)]))
+    def statistic(*s, axis=-1):   # the samples' own axis is the last (scipy moves it there)
+        return np.mean([_poi(s[i], s[k + i]) for i in range(k)], axis=0)
 
-    return {"estimate": statistic(*samples), "ci": _ci(samples, statistic, level, resamples, seed),
+    return {"estimate": float(statistic(*samples)), "ci": _ci(samples, statistic, level, resamples, seed),
             "scenarios": k}
 
 

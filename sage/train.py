@@ -27,11 +27,12 @@ from deploy import ray_run
 from deploy.ray_run import ClusterError, RayPlacement, run_on_ray
 from deploy.sage_run import METRICS_OFFSETS, default_actor_count, parse_ids, run_supervised
 from deploy.supervisor import EXIT_GAVE_UP, SupervisorConfig
+from deploy.threads import run_inprocess
 from common.config_fields import check_range, field_help, parse_value
 from sage.errors import UsageError, nonneg_int, one_line, port, positive_int, user_input
 from sage.runs import last_progress, load_run, read_config
 from services.config import FINAL_EVAL_SEED, UNLIMITED_UPDATES, TrainConfig
-from services.launcher import ROLES, run_inprocess
+from services.launcher import ROLES
 from services.learner.tracking import (WANDB_HINT, MetricsTail, TrackingConfig, WandbRun, tensorboard_available,
                                        wandb_available)
 
@@ -319,6 +320,9 @@ def train_run(cfg: TrainConfig, mode: str = "inprocess", progress: bool = True,
             summary, params = supervised_summary(run, mode)
         else:
             out = run_inprocess(cfg, progress=progress)
+            code = out.pop("exit_code")
+            if code:   # a signal stopped it: nothing to evaluate, as in the process placements
+                return code, None
             params = out.pop("params")
             out.pop("status", None)
             summary = {"mode": "inprocess", **out}

@@ -14,13 +14,12 @@ import hashlib
 import json
 import secrets
 import time
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from common.algos.config import AlgoConfig
 from common.algos.registry import ALL_METHODS
-from common.config_fields import bounded, check_fields, coerce, from_mapping, loads_json, parse_value
+from common.config_fields import bounded, check_fields, coerce, from_mapping, loads_json, parse_value, type_hints
 from common.env.config import EnvConfig
 from common.env.scenarios import SCENARIOS
 from common.keys import check_id
@@ -309,7 +308,7 @@ class TrainConfig:
         if key not in _field_names(owner) or dataclasses.is_dataclass(getattr(owner, key)):
             where = ".".join(keys[:-1]) or "train"
             raise ValueError(f"unknown config field {path!r} ({where} has {', '.join(sorted(_field_names(owner)))})")
-        return chain, keys, typing.get_type_hints(type(owner))[key]
+        return chain, keys, type_hints(type(owner))[key]
 
     def override(self, section: str, key: str, value) -> None:
         """Set ``env.KEY`` or ``algo.KEY`` (``set`` with the section named apart)."""

@@ -1,35 +1,25 @@
-"""The one launcher of a run's services: which members a run has, how each is
-built, and where it runs. As in Sample Factory, the serial and the parallel
-runner differ only in placement, never in what the services do:
+"""What every placement of a run's services shares: which members a run has
+(``run_members``), how each is built (``SERVICE_CLASSES``), and the two ways a
+member can run. As in Sample Factory, the serial and the parallel runner differ
+only in placement, never in what the services do:
 
-* threads of this process on one network-less Zenoh session
-  (``run_inprocess``: ``sage train``'s default and CI's), via ``ServiceThreads``;
-* one process per member, each the documented entry point
+* a thread of this process (``ServiceThreads``; the thread placement,
+  ``deploy/threads.py``: ``sage train``'s default and CI's);
+* a process, the documented entry point
   ``python -m services.<role> --config RUN.json [--actor-id I]``
-  (``entry_argv``), placed and restarted by ``deploy/`` (local supervisor).
-
-Both take the members from ``run_members`` and build each service the same
-way (``SERVICE_CLASSES``).
+  (``entry_argv``), placed and restarted by ``deploy/`` (local processes, Ray).
 """
 from __future__ import annotations
 
 import logging
 import sys
 import threading
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-from prometheus_client import CollectorRegistry
-
-from common.checkpoint import CheckpointError
-from common.metrics_prom import serve_metrics
-from common.status import LiveLine, StatusBoard
-from common.transport import Bus
 from services.actor.service import ActorService
 from services.base import Service
-from services.config import TrainConfig
 from services.learner.service import LearnerService
 from services.shield.service import ShieldService
 
@@ -113,67 +103,3 @@ class ServiceThreads:
         self.stop.set()
         for t in self.threads.values():
             t.join(timeout=timeout_s)
-
-
-def run_inprocess(cfg: TrainConfig, *, progress: bool = True, method=None, envs=None,
-                  propose=None, solve=None, registry: CollectorRegistry | None = None,
-                  timeout_s: float | None = None, out=None) -> dict:
-    """Run a whole training job as threads of this process; returns the
-    learner summary. ``method``, ``envs`` (one per actor), ``propose`` and
-    ``solve`` replace the real components (tests). Raises if a service failed.
-    """
-    registry = registry if registry is not None else CollectorRegistry()
-    server = serve_metrics(cfg.ports.inprocess, registry, addr=cfg.ports.bind)
-    bus = Bus.open(inprocess=True)
-    stop = threading.Event()
-    overrides = {"shield": {"solve": solve}, "learner": {"method": method}}
-    services: dict[str, Service] = {}
-    for m in run_members(range(cfg.actors), shields=cfg.shields):
-        kw = overrides.get(m.role, {})
-        if m.role == "actor":
-            kw = {"env": envs[m.member_id] if envs else None, "propose": propose}
-        services[m.sender] = SERVICE_CLASSES[m.role](cfg, bus, m.member_id, registry, stop, **kw)
-    learner = services["learner/0"]
-    actors = [s for k, s in services.items() if k.startswith("actor/")]
-    shields = [s for k, s in services.items() if k.startswith("shield/")]
-    board = StatusBoard(cfg.run_id, stale_after_s=max(5.0, 5 * cfg.status_period_s)).attach(bus)
-    live = LiveLine(out if out is not None else sys.stderr)
-    group = ServiceThreads(stop)
-    for svc in services.values():
-        group.start(svc)
-    t0 = time.monotonic()
-    last_line = 0.0
-    try:
-        learner_thread = group.threads["learner/0"]
-        while learner_thread.is_alive() and not stop.is_set():
-            learner_thread.join(0.2)
-            if progress and time.monotonic() - last_line > 1.0:
-                last_line = time.monotonic()
-                live.show(board.line())
-            if timeout_s is not None and time.monotonic() - t0 > timeout_s:
-                raise TimeoutError(f"in-process run exceeded {timeout_s} s")
-    except KeyboardInterrupt:
-        log.info("interrupted: stopping services")
-    finally:
-        group.join()
-        if progress:   # the learner's own final counters: its last heartbeat may still be in flight
-            live.close(board.line({"learner/0": {"role": "learner", "state": learner.state,
-                                                 **learner.status_fields()}}))
-        bus.close()
-        if server is not None:
-            server.shutdown()
-    failed = group.failure()
-    if failed:
-        name, exc = failed
-        if isinstance(exc, CheckpointError):   # a fault restarting cannot fix: one line, non-zero exit
-            raise SystemExit(f"{name}: {exc}")
-        raise RuntimeError(f"service {name} failed: {exc!r}") from exc
-    result = learner.summary()
-    result["actor_codes"] = {k: v for k, v in group.codes.items() if k.startswith("actor/")}
-    result["status"] = board.members()
-    result["actors"] = [{"env_steps": a.env_steps, "shield_failures": a.shield_failures,
-                         "chunks": a.chunks_sent, "rejected": dict(a.rejected)} for a in actors]
-    result["shields"] = [{"requests": sh.n_requests, "rows": sh.n_rows, "p50_s": sh.solve_window.quantile(0.5),
-                          "p99_s": sh.solve_window.quantile(0.99)} for sh in shields]
-    result["params"] = learner.method.policy_params() if learner.method is not None else None
-    return result

@@ -10,6 +10,8 @@ Every test module belongs to one tier (``pyproject.toml`` declares the markers):
 module must be placed in ``TIERS`` (``test_every_module_has_a_tier`` in
 tests/test_layers.py fails otherwise).
 """
+import time
+
 import pytest
 
 TIERS = {
@@ -25,7 +27,7 @@ TIERS = {
     "integration": {
         "actor_pruned_rows", "api", "checkpoint", "cli", "config", "env_layouts", "hostile", "human_slot",
         "pacing", "pipeline_shards", "policy_lag", "reconciliation", "services", "shield_budgets", "shield_prune",
-        "suite_eval", "tensorboard", "tracking", "transport_limits", "video",
+        "suite_eval", "tensorboard", "thread_placement", "tracking", "transport_limits", "video",
     },
     "system": {
         "adam", "bench_system", "bundle", "cli_errors", "day_one", "faults", "fuzz_handlers", "layers",
@@ -40,6 +42,31 @@ def pytest_collection_modifyitems(config, items):
         tier = TIER_OF.get(item.module.__name__.rsplit(".", 1)[-1]) if item.module is not None else None
         if tier is not None:
             item.add_marker(getattr(pytest.mark, tier))
+
+
+def wait_for(pred, timeout: float = 10.0, what: str = "the condition", poll: float = 0.02):
+    """``pred()``'s first true value, polled every ``poll`` s; AssertionError after ``timeout`` s.
+    (``from conftest import wait_for``: pytest puts this folder on ``sys.path``.)"""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = pred()
+        if value:
+            return value
+        time.sleep(poll)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory):
+    """One real, tiny ``sage train`` run directory (sage, one update, one evaluation
+    episode), trained once for every module that reads a run."""
+    from sage.cli import main
+
+    run = tmp_path_factory.mktemp("run") / "r"
+    code = main(["train", "--method", "sage", "--updates", "1", "--envs-per-actor", "2",
+                 "--chunk-len", "8", "--eval-episodes", "1", "--run-dir", str(run), "--quiet"])
+    assert code == 0
+    return run
 
 
 @pytest.fixture

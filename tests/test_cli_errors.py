@@ -24,15 +24,6 @@ from sage.cli import main
 
 
 @pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
-    run = tmp_path_factory.mktemp("run") / "r"
-    code = main(["train", "--updates", "1", "--envs-per-actor", "2", "--chunk-len", "8", "--eval-episodes", "0",
-                 "--run-dir", str(run), "--quiet"])
-    assert code == 0
-    return run
-
-
-@pytest.fixture(scope="module")
 def files(tmp_path_factory, tiny_run):
     """Bad inputs, made once: truncated, corrupt and foreign files next to good ones."""
     import torch

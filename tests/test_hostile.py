@@ -251,7 +251,7 @@ def test_learner_restart_never_reuses_a_version_nor_double_logs_an_update(tmp_pa
     """A learner killed after update 4 whose newest checkpoint is update 2 (and whose
     last metrics line is torn): the next incarnation resumes from update 2, publishes
     versions above every one published before, and metrics.jsonl holds each update once."""
-    from services.launcher import run_inprocess
+    from deploy.threads import run_inprocess
     from services_fakes import FakeBatchEnv as Env
 
     def run(updates):

@@ -16,7 +16,7 @@ from test_services import make_cfg, wait_for  # noqa: E402
 from common import keys, wire  # noqa: E402
 from common.transport import Bus  # noqa: E402
 from services.actor.service import ActorService  # noqa: E402
-from services.launcher import run_inprocess  # noqa: E402
+from deploy.threads import run_inprocess  # noqa: E402
 from services.learner.service import LearnerService  # noqa: E402
 from services.shield.service import ShieldService  # noqa: E402
 

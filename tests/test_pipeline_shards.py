@@ -16,7 +16,8 @@ from common import keys, wire  # noqa: E402
 from common.transport import Bus  # noqa: E402
 from services.actor.service import ActorService  # noqa: E402
 from services.config import ActorConfig, PortsConfig, TrainConfig  # noqa: E402
-from services.launcher import entry_argv, run_inprocess, run_members  # noqa: E402
+from deploy.threads import run_inprocess  # noqa: E402
+from services.launcher import entry_argv, run_members  # noqa: E402
 from services.shield.service import ShieldService  # noqa: E402
 
 

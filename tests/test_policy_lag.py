@@ -10,7 +10,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from services_fakes import FakeBatchEnv, FakeMethod, fake_propose, fake_solve  # noqa: E402
 
 from services.config import TrainConfig  # noqa: E402
-from services.launcher import run_inprocess  # noqa: E402
+from deploy.threads import run_inprocess  # noqa: E402
 
 
 @pytest.mark.parametrize("max_lag", [0, 1])

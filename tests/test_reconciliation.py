@@ -20,7 +20,8 @@ from prometheus_client import CollectorRegistry
 
 sys.path.insert(0, str(Path(__file__).parent))
 from services_fakes import FakeBatchEnv, FakeMethod, fake_propose, fake_solve  # noqa: E402
-from test_services import make_cfg, wait_for  # noqa: E402
+from conftest import wait_for  # noqa: E402
+from test_services import make_cfg  # noqa: E402
 
 from common.transport import Bus  # noqa: E402
 from services.actor.service import ActorService  # noqa: E402

@@ -18,9 +18,10 @@ from common.safety_rows import SafetyRows  # noqa: E402
 from common.transport import Bus  # noqa: E402
 from services.actor.service import EXIT_UNHEALTHY, ActorService  # noqa: E402
 from services.config import ActorConfig, ShieldConfig, TrainConfig  # noqa: E402
-from services.launcher import run_inprocess  # noqa: E402
+from deploy.threads import run_inprocess  # noqa: E402
 from services.learner.service import LearnerService  # noqa: E402
 from services.shield.service import ShieldService  # noqa: E402
+from conftest import wait_for  # noqa: E402
 
 
 def make_cfg(tmp_path, **kw):
@@ -28,14 +29,6 @@ def make_cfg(tmp_path, **kw):
                 envs_per_actor=2, checkpoint_every=2, status_period_s=0.1)
     base.update(kw)
     return TrainConfig(**base).validate()
-
-
-def wait_for(pred, timeout=10.0):
-    t0 = time.monotonic()
-    while not pred():
-        if time.monotonic() - t0 > timeout:
-            raise AssertionError("condition not reached")
-        time.sleep(0.01)
 
 
 def sample(registry, name, **labels):

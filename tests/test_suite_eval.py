@@ -8,15 +8,6 @@ from sage.cli import main
 from sage.report import EVAL_KEYS
 
 
-@pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
-    run = tmp_path_factory.mktemp("run") / "r"
-    code = main(["train", "--method", "sage", "--updates", "1", "--envs-per-actor", "2",
-                 "--chunk-len", "8", "--eval-episodes", "1", "--run-dir", str(run), "--quiet"])
-    assert code == 0
-    return run
-
-
 def test_eval_reads_newest_checkpoint(tiny_run, capsys):
     assert main(["eval", str(tiny_run), "--episodes", "2", "--json"]) == 0
     rec = json.loads(capsys.readouterr().out)

@@ -26,6 +26,8 @@ from deploy.sage_run import METRICS_OFFSETS, parse_ids, service_specs
 from deploy.supervisor import EXIT_GAVE_UP, ServiceSpec, Supervisor, SupervisorConfig, free_tcp_port
 from sage.train import add_up_arguments, up_config_from_args
 
+from conftest import wait_for
+
 PY = sys.executable
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -42,16 +44,6 @@ def events(run_dir: Path, kind: str | None = None, service: str | None = None) -
     path = Path(run_dir) / "supervisor.jsonl"
     rows = [json.loads(x) for x in path.read_text().splitlines()] if path.exists() else []
     return [r for r in rows if (kind is None or r["event"] == kind) and (service is None or r.get("service") == service)]
-
-
-def wait_for(pred, timeout: float, what: str, poll: float = 0.05):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = pred()
-        if value:
-            return value
-        time.sleep(poll)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
 def py(name: str, code: str, **kw) -> ServiceSpec:

@@ -26,21 +26,13 @@ from common.transport import Bus, TlsFiles, tls_link_config, zenoh_config
 from deploy import tls as dtls
 from deploy.supervisor import free_tcp_port
 from services.config import PortsConfig, TransportConfig
+from conftest import wait_for  # noqa: E402
 
 pytestmark = [pytest.mark.timeout(120),
               pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl CLI for test certificates")]
 
 ROOT = Path(__file__).resolve().parents[1]
 RUN = "tlsrun"
-
-
-def wait_for(pred, timeout: float, what: str, poll: float = 0.02):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return
-        time.sleep(poll)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
 class Inbox:

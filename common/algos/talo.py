@@ -174,12 +174,16 @@ def talo_project(
     grad_w = grad_w.detach()
     w = float(w_gap)
     delta = float(grad_w @ g_ind) + sigma * w
-    norm = float(grad_w.norm())
-    if delta <= 0.0 or norm == 0.0:
+    # ||grad W|| of the vector scaled to max |entry| 1: entries below 1e-154 would
+    # square to subnormals, which keep only a few bits (a norm off by percents)
+    peak = float(grad_w.abs().max()) if grad_w.numel() else 0.0
+    if delta <= 0.0 or peak == 0.0:
         return g_ind.clone(), delta
+    scaled = grad_w / peak
+    norm = peak * float(scaled.norm())
     # delta / (n^2 + eps) * grad_w, written with the unit vector so that a tiny
     # ||grad W|| does not underflow n^2 to 0 (or a denormal) first
-    unit = grad_w / norm
+    unit = scaled / float(scaled.norm())
     step = (delta / norm) * (norm * norm / (norm * norm + eps)) if eps > 0 else delta / norm
     out = g_ind - step * unit
     if not bool(torch.isfinite(out).all()):
