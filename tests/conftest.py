@@ -3,12 +3,15 @@
 Every test module belongs to one tier (``pyproject.toml`` declares the markers):
 
 - ``unit``: pure functions and single objects, no threads, no processes;
+- ``sweep``: unit scope, but long by design: fuzz loops, property runs of hundreds
+  of examples, learning curves, a kernel checked against its twin on every scenario;
 - ``integration``: services as threads in one process (an in-process bus, a tiny run);
 - ``system``: real processes, routers, Ray, network namespaces.
 
-``pytest -m unit`` is the quick loop while editing; CI runs every tier. A new test
-module must be placed in ``TIERS`` (``test_every_module_has_a_tier`` in
-tests/test_layers.py fails otherwise).
+``pytest -m unit`` is the quick loop while editing (``-m "unit or sweep"``: all of unit
+scope); CI runs every tier. A new test module must be placed in ``TIERS``
+(``test_every_module_has_a_tier`` in tests/test_layers.py fails otherwise); one long
+test of a unit module carries ``@pytest.mark.sweep`` and leaves the quick loop alone.
 """
 import time
 
@@ -16,14 +19,15 @@ import pytest
 
 TIERS = {
     "unit": {
-        "algos", "algos_critic", "algos_env", "algos_learning", "audit_stats", "audit_trace", "audit_tree",
+        "algos", "algos_critic", "algos_env", "audit_stats", "audit_trace", "audit_tree",
         "base_modules", "bench_scaling", "compare", "driver", "env", "env_fast", "env_kernels", "files_are_data",
         "graded_outcomes", "instrument", "kernels_nogil", "mechanism_metrics", "outcome_metrics", "parallel_env",
-        "payload_points", "progress", "proposal", "proposal_kernels", "protocol", "qp", "qp_cli", "qp_properties",
+        "payload_points", "progress", "proposal", "proposal_kernels", "protocol", "qp", "qp_cli",
         "readme", "report", "report_ci", "row_kernels", "safety", "safety_honesty", "safety_kkt",
         "safety_profiles", "sail", "sail_kernel", "sparse_tree", "stats", "talo", "talo_fast", "tree",
-        "tree_grad_kernels", "tree_kernel", "wire", "wire_fuzz",
+        "tree_grad_kernels", "tree_kernel", "wire",
     },
+    "sweep": {"algos_learning", "qp_properties", "wire_fuzz"},
     "integration": {
         "actor_pruned_rows", "api", "checkpoint", "cli", "config", "env_layouts", "hostile", "human_slot",
         "pacing", "pipeline_shards", "policy_lag", "reconciliation", "services", "shield_budgets", "shield_prune",
@@ -40,6 +44,8 @@ TIER_OF = {f"test_{name}": tier for tier, names in TIERS.items() for name in nam
 def pytest_collection_modifyitems(config, items):
     for item in items:
         tier = TIER_OF.get(item.module.__name__.rsplit(".", 1)[-1]) if item.module is not None else None
+        if tier == "unit" and item.get_closest_marker("sweep") is not None:
+            continue   # a sweep of a unit module: its own mark is its tier
         if tier is not None:
             item.add_marker(getattr(pytest.mark, tier))
 

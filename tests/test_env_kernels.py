@@ -100,6 +100,7 @@ def _check_snapshot_and_observe(env, rng, envs):
 @HYP
 @given(st.sampled_from(sorted(SCENARIOS)), st.integers(0, 2**31), st.floats(0.0, 0.3),
        st.sampled_from([None, 0, 2]))
+@pytest.mark.sweep
 def test_snapshot_and_observe_match_reference_on_random_states(name, seed, spread, human):
     rng = np.random.default_rng(seed)
     env = _env(name, human_slot=human)
@@ -199,6 +200,7 @@ def test_episode_sums_match_reference():
 
 @HYP
 @given(st.integers(0, 2**31))
+@pytest.mark.sweep
 def test_tracker_targets_and_reset_match_reference(seed):
     rng = np.random.default_rng(seed)
     fast, ref = _env(), _env()
@@ -218,6 +220,7 @@ def test_tracker_targets_and_reset_match_reference(seed):
 
 @HYP
 @given(st.sampled_from(sorted(SCENARIOS)), st.integers(0, 2**31))
+@pytest.mark.sweep
 def test_episode_placement_and_start_clearance_match_reference(name, seed):
     rng = np.random.default_rng(seed)
     fast, ref = _env(name, seed=seed % 7), _env(name, seed=seed % 7)
@@ -294,6 +297,7 @@ def _use_references(monkeypatch):
     ("tilt_gate", {"human_slot": 1, "safety_rows": "grasp", "max_steps": 30}),
     ("chicane", {"start_spread": 2.0, "action_delay_steps": 1, "human_slot": 2, "max_steps": 15}),
 ])
+@pytest.mark.sweep
 def test_batch_env_matches_its_numpy_reference(name, kw, monkeypatch):
     """Same seed and actions: every output of every step equals the all-numpy env's, resets included."""
     cfg = EnvConfig(name, **kw)

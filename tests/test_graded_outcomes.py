@@ -72,6 +72,7 @@ def test_original_start_box_is_reproduced_with_spread_one():
 
 
 @pytest.mark.parametrize("name", ["narrow_gate", "tilt_gate", "chicane", "maze"])
+@pytest.mark.sweep
 def test_wider_spread_spreads_starts_and_keeps_them_clear(name):
     K = 200
     narrow = _env(k=K, seed=1, scenario=name, start_spread=1.0)

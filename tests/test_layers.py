@@ -50,7 +50,7 @@ def test_a_forbidden_import_breaks_a_contract(tmp_path):
 
 
 def test_every_module_has_a_tier():
-    """tests/conftest.py places each test module in one tier (unit / integration / system)."""
+    """tests/conftest.py places each test module in one tier (unit / sweep / integration / system)."""
     from pathlib import Path
 
     from conftest import TIERS

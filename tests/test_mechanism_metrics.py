@@ -425,6 +425,7 @@ def test_joint_cbf_and_talo_cbf_share_the_base_scheme():
 # --------------------------------------------------------------------------- HAPPO order
 
 @pytest.mark.parametrize("name", ["happo", "sail_cbf"])
+@pytest.mark.sweep
 def test_happo_order_is_drawn_once_per_update(name):
     m = make_method(name, small_cfg(epochs=3, minibatches=4), OBS, 0)
     batch = small_batch(m)

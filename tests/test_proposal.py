@@ -36,6 +36,7 @@ def test_log_prob_matches_closed_form_per_carrier():
     np.testing.assert_allclose(proposal_log_prob_np(center, log_std, a), expected, rtol=1e-10)
 
 
+@pytest.mark.sweep
 def test_samples_follow_the_density():
     """Histogram of 400k samples against the exact density (1-D marginal)."""
     rng = np.random.default_rng(1)
@@ -86,6 +87,7 @@ def test_torch_matches_numpy_and_is_differentiable():
     assert outside.grad[0, 0] == 0 and outside.grad[0, 1] != 0
 
 
+@pytest.mark.sweep
 def test_entropy():
     log_std = torch.tensor([-0.5, 0.0, 0.3, -1.0, -1.0, -1.0, 0.1, 0.2, 0.3], dtype=torch.float64, requires_grad=True)
     h = proposal_entropy(log_std)

@@ -80,6 +80,7 @@ def check_batch(a, C, c, mask, fixed, reference=True):
     return base
 
 
+@pytest.mark.sweep
 def test_random_instances_match_quadprog_osqp_and_kkt():
     rng = np.random.default_rng(1)
     B = 1500

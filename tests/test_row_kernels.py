@@ -39,6 +39,7 @@ def test_pruning_kernel_equals_reference_on_mixed_problems(seed):
 
 @settings(max_examples=150, deadline=None)
 @given(pruning_problem())
+@pytest.mark.sweep
 def test_pruning_kernel_equals_reference_hypothesis(prob):
     assert_same_pruning(*prob)
 
@@ -121,6 +122,7 @@ def test_answer_check_kernel_violation_equals_scaled_violation():
 @settings(max_examples=150, deadline=None)
 @given(pruning_problem(), st.integers(0, 2**32 - 1),
        arrays(np.float64, D, elements=st.floats(-1.2, 1.2)))
+@pytest.mark.sweep
 def test_answer_check_kernel_equals_reference_hypothesis(prob, seed, jitter):
     """Answers near the real one (some inside tol, some beyond) and arbitrary statuses."""
     a, rows = prob

@@ -142,6 +142,7 @@ def test_rows_equal_supporting_halfplane_of_predicted_barrier(scene, cfg):
 
 @settings(HYP, max_examples=20)
 @given(scenes())
+@pytest.mark.sweep
 def test_row_gradient_matches_finite_difference_of_true_barrier(scene):
     """C equals d/da of the exact barrier at the predicted state (central differences at a=0)."""
     geom, walls, _ = scene
@@ -185,6 +186,7 @@ def test_row_gradient_matches_finite_difference_of_true_barrier(scene):
 
 @HYP
 @given(scenes(), st.floats(0.0, 1.0, **finite))
+@pytest.mark.sweep
 def test_wall_rows_are_conservative_for_exact_distance(scene, shrink):
     """Any action on or inside a wall row keeps the exact predicted clearance >= (1-α)h."""
     geom, walls, a = scene

@@ -108,6 +108,7 @@ def _active_region_problem(seed, k, kappa):
 
 @settings(max_examples=20, deadline=None)
 @given(st.integers(0, 10_000), st.integers(1, 6), st.sampled_from([0.5, 5.0, 50.0]))
+@pytest.mark.sweep
 def test_jacobian_matches_sail_jacobian_in_fixed_active_set(seed, k, kappa):
     a, C, c, CJ = _active_region_problem(seed, k, kappa)
     mask = torch.ones(1, len(c), dtype=torch.bool)

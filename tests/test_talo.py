@@ -126,6 +126,7 @@ finite = st.floats(-10, 10, allow_nan=False, allow_infinity=False)
     w=st.floats(0, 100),
     sigma=st.floats(0, 50),
 )
+@pytest.mark.sweep
 def test_projection_properties(g, gw, w, sigma):
     g_t, gw_t = torch.tensor(g, dtype=F64), torch.tensor(gw, dtype=F64)
     out, delta = talo_project(g_t, gw_t, w, sigma=sigma, eps=0.0)

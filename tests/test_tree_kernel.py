@@ -49,6 +49,7 @@ def test_kernel_equals_reference_on_random_trees(depth, split_k):
 @settings(max_examples=150, deadline=None)
 @given(obs=arrays(np.float64, (5, 3, 6), elements=st.floats(-50, 50, allow_nan=False, width=32)),
        seed=st.integers(0, 3))
+@pytest.mark.sweep
 def test_kernel_equals_reference_on_drawn_observations(obs, seed):
     _agree(_params(3, 6, seed), obs)
 
