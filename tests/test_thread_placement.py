@@ -15,17 +15,10 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 from services_fakes import FakeBatchEnv, FakeMethod, fake_propose, fake_solve  # noqa: E402
+from test_services import make_cfg  # noqa: E402
 
 from common.checkpoint import CheckpointError  # noqa: E402
 from deploy.threads import run_inprocess  # noqa: E402
-from services.config import TrainConfig  # noqa: E402
-
-
-def make_cfg(tmp_path, **kw):
-    base = dict(run_id="tp", run_dir=str(tmp_path / "run"), updates=3, chunk_len=6, actors=2,
-                envs_per_actor=2, checkpoint_every=1000, status_period_s=0.1)
-    base.update(kw)
-    return TrainConfig(**base).validate()
 
 
 def run(cfg, method, **kw):
