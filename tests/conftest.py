@@ -4,7 +4,8 @@ Every test module belongs to one tier (``pyproject.toml`` declares the markers):
 
 - ``unit``: pure functions and single objects, no threads, no processes;
 - ``sweep``: unit scope, but long by design: fuzz loops, property runs of hundreds
-  of examples, learning curves, a kernel checked against its twin on every scenario;
+  of examples, learning curves, a kernel checked against its twin on every scenario,
+  every figure of a report drawn;
 - ``integration``: services as threads in one process (an in-process bus, a tiny run);
 - ``system``: real processes, routers, Ray, network namespaces.
 

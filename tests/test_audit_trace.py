@@ -75,6 +75,7 @@ def test_representative_steps_pick_routes_that_part_early(rec):
     assert l1 != l2 or len(visited) == 1
 
 
+@pytest.mark.sweep
 def test_trace_and_audit_cli(rec, tmp_path, capsys):
     path = rec.save(tmp_path / "r.npz")
     assert main(["trace", str(path), "--out", str(tmp_path / "trace.png"), "--carrier", "2"]) == 0

@@ -88,6 +88,7 @@ def test_supersuit_vector_env():
         assert bool(trunc.all()) == (t == 4)
 
 
+@pytest.mark.sweep
 def test_torchrl_wrapper_specs_and_rollout():
     pytest.importorskip("torchrl")
     from torchrl.envs.libs.pettingzoo import PettingZooWrapper

@@ -44,6 +44,7 @@ def test_family_and_overall_means(tmp_path):
     assert "SAGE+CBF" in md and "LCP mean" in md
 
 
+@pytest.mark.sweep
 def test_write_report_produces_table_and_figures(tmp_path):
     paths = [_result(tmp_path, m, "maze", 0, 0.5, 1.0) for m in ("happo", "happo_cbf", "sage")]
     out = write_report(paths, tmp_path / "report")
@@ -140,6 +141,7 @@ def test_mechanism_note_is_a_whole_sentence(tmp_path):
                          "within its safety margin of a wall) below 0."), note
 
 
+@pytest.mark.sweep
 def test_deployment_probe_panel_shows_runs_too_short_for_a_curve(tmp_path, monkeypatch):
     """Regression: with one probe per run the panel was an empty plot; runs with
     several probes still draw their mean curve."""
@@ -162,6 +164,7 @@ def test_deployment_probe_panel_shows_runs_too_short_for_a_curve(tmp_path, monke
     assert _finite_points(probe) >= 2 * 41     # each method's mean curve on the progress grid
 
 
+@pytest.mark.sweep
 def test_payload_panels_have_units_and_a_legend(tmp_path, monkeypatch):
     paths = [_result(tmp_path, m, "maze", 0, 0.5, 1.0) for m in ("happo", "happo_cbf", "sage")]
     fig = _figures(monkeypatch, paths, tmp_path / "r")["payload_panels.png"]
