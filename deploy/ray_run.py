@@ -1,6 +1,6 @@
 """A SAGE run placed on a Ray cluster: Ray only places and restarts the
 processes; the services talk over Zenoh + msgpack exactly as under the local
-supervisor (``deploy/sage_run.py``).
+supervisor (``deploy/supervised_run.py``).
 
     sage up --ray auto --actors 8 --updates 500        # a running cluster (`ray start --head`)
     sage train --mode ray --ray 10.0.0.1:6379 ...      # the same, from sage train
@@ -54,7 +54,7 @@ from typing import Sequence
 
 from common.rundir import atomic_write_text
 from deploy.driver import EXIT_GAVE_UP, Member, RunDriver, kill_group, parent_death_argv
-from deploy.sage_run import prepare_run, run_with_status
+from deploy.supervised_run import prepare_run, run_with_status
 from deploy.supervisor import ServiceSpec
 from services.config import TrainConfig
 from services.launcher import ROLES, run_members

@@ -1,6 +1,6 @@
 """The local placement: a generic process supervisor that runs ``ServiceSpec``
 commands, each as its own process group of this host (what SAGE runs is
-``deploy/sage_run.py``). The run's records, loop, signals and shutdown waves
+``deploy/supervised_run.py``). The run's records, loop, signals and shutdown waves
 are the run driver's (``deploy/driver.py``), shared with the Ray placement;
 what is this placement's own is where and how a member runs and restarts. It:
 

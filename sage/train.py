@@ -25,7 +25,7 @@ from common.policy.tree_torch import policy_params_from_checkpoint
 from common.rundir import RunDir, atomic_write_text
 from deploy import ray_run
 from deploy.ray_run import ClusterError, RayPlacement, run_on_ray
-from deploy.sage_run import METRICS_OFFSETS, default_actor_count, parse_ids, run_supervised
+from deploy.supervised_run import METRICS_OFFSETS, default_actor_count, parse_ids, run_supervised
 from deploy.supervisor import EXIT_GAVE_UP, SupervisorConfig
 from deploy.threads import run_inprocess
 from common.config_fields import check_range, field_help, parse_value

@@ -66,6 +66,31 @@ def test_actor_waits_for_its_unsettled_chunks_not_only_for_new_versions(tmp_path
         bus.close()
 
 
+def test_a_rebroadcast_of_the_held_version_brings_its_newer_backlog(tmp_path):
+    """The learner rebroadcasts its parameters with its backlog as it stands; an actor
+    that kept the first backlog of a version waited for chunks the learner had long
+    admitted, until pace_timeout_s (120 s): seen after router restarts had lost a chunk
+    that the learner's batch then waited for."""
+    cfg = make_cfg(tmp_path, chunk_len=4, actors=1, envs_per_actor=2)   # max_chunks_ahead = 2
+    bus, stop = Bus.open(inprocess=True), threading.Event()
+    chunks = []
+    bus.subscribe(keys.traj_all(cfg.run_id), lambda _k, p: chunks.append(wire.decode(p, run_id=cfg.run_id)))
+    threading.Thread(target=ShieldService(cfg, bus, stop=stop, solve=fake_solve).run, daemon=True).start()
+    actor = ActorService(cfg, bus, 0, stop=stop, env=FakeBatchEnv(2), propose=fake_propose)
+    threading.Thread(target=actor.run, daemon=True).start()
+    wait_for(lambda: actor.state == "waiting")
+    try:
+        _publish(bus, cfg, 0, ([-1], [0]))
+        _steady(chunks, 2)
+        _publish(bus, cfg, 1, ([-1], [0]))
+        _steady(chunks, 2)               # version 1, both chunks unsettled
+        _publish(bus, cfg, 1, ([1], [0]))
+        _steady(chunks, 4)               # the same version again: both settled, two more
+    finally:
+        stop.set()
+        bus.close()
+
+
 def test_backlog_of_a_new_learner_incarnation_ignores_chunks_sent_to_the_old_one(tmp_path):
     cfg = make_cfg(tmp_path, actors=2)
     actor = ActorService(cfg, Bus.open(inprocess=True), 1)

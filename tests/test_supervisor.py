@@ -1,4 +1,4 @@
-"""deploy/supervisor.py and deploy/sage_run.py: restarts with backoff, the restart budget, clean
+"""deploy/supervisor.py and deploy/supervised_run.py: restarts with backoff, the restart budget, clean
 shutdown with no orphans, and a real multi-process run (router, shield,
 learner, two actors) that survives a killed actor.
 
@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 
 from common.status import StatusBoard, status_line
-from deploy.sage_run import METRICS_OFFSETS, parse_ids, service_specs
+from deploy.supervised_run import METRICS_OFFSETS, parse_ids, service_specs
 from deploy.supervisor import EXIT_GAVE_UP, ServiceSpec, Supervisor, SupervisorConfig, free_tcp_port
 from sage.train import add_up_arguments, up_config_from_args
 

@@ -113,8 +113,9 @@ class ActorService(Service):
         with self._lock:
             cur = self._pending or self.params
             # a restarted learner (new incarnation) may resume at a lower version; a held
-            # version no heartbeat vouched for gives way to the learner's own (see _fence)
-            if cur is None or b["incarnation"] != cur["incarnation"] or b["version"] > cur["version"] \
+            # version no heartbeat vouched for gives way to the learner's own (see _fence);
+            # a rebroadcast of the held version carries the learner's newer backlog (_pace)
+            if cur is None or b["incarnation"] != cur["incarnation"] or b["version"] >= cur["version"] \
                     or self._unvouched_gives_way(cur, b):
                 self._pending = b
 

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from common import keys
-from deploy.sage_run import service_specs
+from deploy.supervised_run import service_specs
 from deploy.supervisor import ServiceSpec
 from sage.bench.system.cpu import actor_step_cost, cpu_ratio, median_cost
 from sage.bench.system.meter import StepMeter

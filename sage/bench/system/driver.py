@@ -14,7 +14,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from common.transport import Bus
-from deploy.sage_run import router_spec, service_specs
+from deploy.supervised_run import router_spec, service_specs
 from deploy.supervisor import ServiceSpec, free_tcp_port
 from sage.bench.system import actor_ratio, param_broadcast, shield_rtt
 from sage.bench.system.config import RATIO_TARGET

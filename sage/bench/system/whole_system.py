@@ -21,7 +21,7 @@ from pathlib import Path
 
 from common import keys
 from common.transport import Bus
-from deploy.sage_run import router_spec, service_specs
+from deploy.supervised_run import router_spec, service_specs
 from deploy.supervisor import free_tcp_port
 from sage.bench.system.cpu import bracketed_ratio, cpu_budget, host_cpus
 from sage.bench.system.meter import StepMeter
