@@ -38,8 +38,10 @@ def _steady(count, n, settle_s=0.3):
     assert len(count) == n
 
 
-def test_actor_waits_for_its_unsettled_chunks_not_only_for_new_versions(tmp_path):
-    cfg = make_cfg(tmp_path, chunk_len=4, actors=1, envs_per_actor=2)   # max_chunks_ahead = 2
+def _waiting_actor(tmp_path):
+    """One actor (max_chunks_ahead = 2) and a shield on an in-process bus, the actor
+    waiting for its first parameters; returns (cfg, bus, stop, actor, chunks it sent)."""
+    cfg = make_cfg(tmp_path, chunk_len=4, actors=1, envs_per_actor=2)
     bus, stop = Bus.open(inprocess=True), threading.Event()
     chunks = []
     bus.subscribe(keys.traj_all(cfg.run_id), lambda _k, p: chunks.append(wire.decode(p, run_id=cfg.run_id)))
@@ -47,6 +49,11 @@ def test_actor_waits_for_its_unsettled_chunks_not_only_for_new_versions(tmp_path
     actor = ActorService(cfg, bus, 0, stop=stop, env=FakeBatchEnv(2), propose=fake_propose)
     threading.Thread(target=actor.run, daemon=True).start()
     wait_for(lambda: actor.state == "waiting")
+    return cfg, bus, stop, actor, chunks
+
+
+def test_actor_waits_for_its_unsettled_chunks_not_only_for_new_versions(tmp_path):
+    cfg, bus, stop, actor, chunks = _waiting_actor(tmp_path)
     try:
         _publish(bus, cfg, 0, ([-1], [0]))
         _steady(chunks, 2)               # two chunks of version 0 (the version rule)
@@ -71,14 +78,7 @@ def test_a_rebroadcast_of_the_held_version_brings_its_newer_backlog(tmp_path):
     that kept the first backlog of a version waited for chunks the learner had long
     admitted, until pace_timeout_s (120 s): seen after router restarts had lost a chunk
     that the learner's batch then waited for."""
-    cfg = make_cfg(tmp_path, chunk_len=4, actors=1, envs_per_actor=2)   # max_chunks_ahead = 2
-    bus, stop = Bus.open(inprocess=True), threading.Event()
-    chunks = []
-    bus.subscribe(keys.traj_all(cfg.run_id), lambda _k, p: chunks.append(wire.decode(p, run_id=cfg.run_id)))
-    threading.Thread(target=ShieldService(cfg, bus, stop=stop, solve=fake_solve).run, daemon=True).start()
-    actor = ActorService(cfg, bus, 0, stop=stop, env=FakeBatchEnv(2), propose=fake_propose)
-    threading.Thread(target=actor.run, daemon=True).start()
-    wait_for(lambda: actor.state == "waiting")
+    cfg, bus, stop, actor, chunks = _waiting_actor(tmp_path)
     try:
         _publish(bus, cfg, 0, ([-1], [0]))
         _steady(chunks, 2)
