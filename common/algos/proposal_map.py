@@ -15,7 +15,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from common.algos import surrogate_chain
 from common.algos.batch import Minibatch
+from common.algos.surrogate_chain import surrogate_values
 from common.algos.talo import Through, talo_gap
 from common.policy.proposal import proposal_entropy, proposal_log_prob
 from common.policy.sail import SailConfig, SailStep, sail_center_implicit, sail_project, sail_step
@@ -143,19 +145,29 @@ class ProposalMap:
         """One forward at the current parameters (all carriers attached) and the
         surrogates on it twice: ``behaviour`` (ratio against the behaviour policy: the
         PPO surrogates the methods step along) and ``start`` (ratio against the update's
-        start policy ``mb.logp_start``: the mechanism diagnostics).
-        Where the two references agree bitwise on the minibatch (on-policy data: the
-        actors' log-density is the learner's), ``start is behaviour``, and whatever is
-        computed on one serves the other. Returns (a_ST, SAIL step or None, behaviour, start)."""
+        start policy ``mb.logp_start``, this forward's own where None: the mechanism
+        diagnostics). Where the two ratios agree bitwise on the minibatch (on-policy data:
+        the actors' log-density is the learner's), ``start is behaviour``, and whatever is
+        computed on one serves the other. From a_ST on, the surrogates and their first and
+        second derivatives are the closed form of common/algos/surrogate_chain.py (the
+        unrolled SAIL gradient keeps the autograd graph of ``center``).
+        Returns (a_ST, SAIL step or None, behaviour, start)."""
         a_st = self.tree_actions(mb, tau, grad=True)
         step = self.sail_step(mb, a_st, kappa)
-        logp = proposal_log_prob(self.center(mb, a_st, kappa, step=step), self.log_std(), mb.a_robot)
-        behaviour = self.surrogates_against(mb, logp, mb.logp_old)
-        reference = logp.detach() if mb.logp_start is None else mb.logp_start
-        start_ratio = self.ratio_against(mb, logp, reference)
-        if torch.equal(start_ratio, behaviour.log_ratio):
+        references = (mb.logp_old, mb.logp_start)
+        if self.uses_sail and self.sail_grad == "unrolled":
+            logp = proposal_log_prob(self.center(mb, a_st, kappa), self.log_std(), mb.a_robot)
+            refs = torch.stack([logp.detach() if r is None else r for r in references])
+            log_ratios = torch.where(mb.active, logp - refs, torch.zeros_like(logp))
+            values = torch.stack([surrogate_values(r, mb.adv, mb.active, self.clip) for r in log_ratios])
+        else:
+            values, log_ratios = surrogate_chain.chain_surrogates(a_st, self.log_std(), mb, step, references,
+                                                                  self.clip)
+        N = self.n_agents
+        behaviour, start = (Surrogates(r, list(v[:N].unbind(0)), v[N]) for r, v in zip(log_ratios, values))
+        if torch.equal(log_ratios[1], log_ratios[0]):
             return a_st, step, behaviour, behaviour
-        return a_st, step, behaviour, self.surrogates_against(mb, logp, reference)
+        return a_st, step, behaviour, start
 
     def gap(self, a_st: Tensor, s: Surrogates, with_hvp: bool):
         """Eq. (talo_gap) on surrogates ``s`` built on the forward that produced ``a_st``:
