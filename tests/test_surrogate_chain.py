@@ -122,3 +122,49 @@ def test_talo_gap_matches_the_autograd_chain(name, monkeypatch):
                 assert float(a.abs().max()) == 0
             else:
                 assert _rel(a, b) < 1e-5
+
+
+@pytest.mark.parametrize("name", ["sage", "talo_cbf", "sail_cbf", "joint_cbf", "happo", "happo_cbf"])
+def test_an_update_steps_where_the_autograd_chain_steps(name, monkeypatch):
+    """Two whole updates (every minibatch step, HAPPO's per-carrier surrogates with the M
+    factor, the diagnostics and the A/B) from the same state: the same parameters and
+    diagnostics to float32 rounding, closed-form chain vs the autograd graph."""
+    task = BanditTask(obs_dim=16, seed=4, n_rows=12, human_rate=0.1)
+
+    def run():
+        method = make_method(name, AlgoConfig(seed=4), 16, 48)
+        rng = np.random.default_rng(4)
+        diags = [method.update(collect(method, task, 16, 8, p, rng), p) for p in (0.2, 0.6)]
+        return torch.cat([p.detach().double().reshape(-1) for p in method.actor_params]), diags[-1]
+
+    fast_params, fast = run()
+    with monkeypatch.context() as patch:
+        patch.setattr(surrogate_chain, "chain_surrogates", reference_surrogates)
+        ref_params, ref = run()
+    assert _rel(fast_params, ref_params) < 1e-5
+    for key in ("policy_loss", "approx_kl", "w_gap_mean", "ab_w_talo"):
+        if key in ref:
+            assert fast[key] == pytest.approx(ref[key], rel=1e-4, abs=1e-9), key
+
+
+@pytest.mark.parametrize("name", ["happo", "sail_cbf"])
+def test_the_carrier_surrogate_is_happos(name):
+    """``ProposalMap.carrier_surrogate`` (the sequential step's L_i with the M factor) against
+    the expression it replaced: value, log-ratio and gradient in carrier i's parameters."""
+    task = BanditTask(obs_dim=16, seed=5, n_rows=12, human_rate=0.1)
+    method = make_method(name, AlgoConfig(seed=5), 16, 48)
+    data, _ = method._prepare(collect(method, task, 16, 8, 0.5, np.random.default_rng(5)))
+    P, i = method.proposal, 1
+    factor = torch.exp(0.3 * torch.randn(data.adv.shape, generator=torch.Generator().manual_seed(2),
+                                          dtype=data.adv.dtype))
+    mb = dataclasses.replace(data, adv=data.adv * factor)
+    a_st = P.tree_actions(mb, 0.4, grad=True)
+    step = P.sail_step(mb, a_st, 4.0)
+    log_ratio, surr = P.carrier_surrogate(mb, a_st, P.log_std(), 4.0, step, i)
+    ref_ratio = P.log_ratio(mb, P.center(mb, a_st, 4.0, step=step), P.log_std())[:, i]
+    ref = (P.clipped(ref_ratio.exp(), mb.adv) * mb.active[:, i]).mean()
+    assert torch.equal(log_ratio, ref_ratio.detach())
+    assert float(surr.detach()) == pytest.approx(float(ref.detach()), rel=1e-12)
+    grads = [torch.cat([g.reshape(-1) for g in torch.autograd.grad(s, P.groups[i], retain_graph=True,
+                                                                 allow_unused=False)]) for s in (surr, ref)]
+    assert float(grads[1].abs().max()) > 0 and _rel(*grads) < 1e-5

@@ -169,6 +169,18 @@ class ProposalMap:
             return a_st, step, behaviour, behaviour
         return a_st, step, behaviour, start
 
+    def carrier_surrogate(self, mb: Minibatch, a_st: Tensor, log_std: Tensor, kappa: float,
+                          step: SailStep | None, i: int) -> tuple[Tensor, Tensor]:
+        """Carrier ``i``'s log-ratio against the behaviour policy [B] (detached) and its
+        surrogate L_i (Eq. ppo_surrogates) at ``a_st``, with ``step`` the SAIL step at
+        these values of a_ST (the sequential step's per-carrier forward)."""
+        if self.uses_sail and self.sail_grad == "unrolled":
+            log_ratio = self.log_ratio(mb, self.center(mb, a_st, kappa), log_std)[:, i]
+            return log_ratio.detach(), (self.clipped(log_ratio.exp(), mb.adv) * mb.active[:, i]).mean()
+        values, log_ratios = surrogate_chain.chain_surrogates(a_st, log_std, mb, step if self.uses_sail else None,
+                                                              (mb.logp_old,), self.clip)
+        return log_ratios[0, :, i], values[0, i]
+
     def gap(self, a_st: Tensor, s: Surrogates, with_hvp: bool):
         """Eq. (talo_gap) on surrogates ``s`` built on the forward that produced ``a_st``:
         (g_ind, g_team, W_gap, grad W or None). Without SAIL each L_i depends on tree i

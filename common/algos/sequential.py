@@ -15,6 +15,8 @@ solve): the first carrier in the order, at M = 1, steps along that forward's L_i
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import torch
 from torch import nn
@@ -83,10 +85,10 @@ def happo_step(learner, mb: Minibatch, tau: float, kappa: float, order: list[int
         else:
             own = tree(mb.obs[:, i], tau).action
             a_st = torch.cat([a_st_cache[:, :block.start], own, a_st_cache[:, block.stop:]], dim=-1)
-            # same values as the cached forward: reuse its SAIL step, build the graph only
-            center = proposal.center(mb, a_st, kappa, step=step_cache)
-            log_ratio = proposal.log_ratio(mb, center, log_std)[:, i]
-            surr = (proposal.clipped(log_ratio.exp(), mb.adv * factor) * active).mean()
+            # same values as the cached forward: reuse its SAIL step, build the graph only;
+            # L_i with the advantage scaled by M (Eq. ppo_surrogates with the factor)
+            log_ratio, surr = proposal.carrier_surrogate(dataclasses.replace(mb, adv=mb.adv * factor),
+                                                         a_st, log_std, kappa, step_cache, i)
         entropy = proposal_entropy(log_std)[i]
         loss = -(surr + cfg.ent_coef * entropy)
         loss.backward()                      # adds to a reused gradient
