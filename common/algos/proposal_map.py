@@ -17,7 +17,7 @@ from torch import Tensor
 
 from common.algos import surrogate_chain
 from common.algos.batch import Minibatch
-from common.algos.surrogate_chain import surrogate_values
+from common.algos.surrogate_chain import clipped, surrogate_values
 from common.algos.talo import Through, talo_gap
 from common.policy.proposal import proposal_entropy, proposal_log_prob
 from common.policy.sail import SailConfig, SailStep, sail_center_implicit, sail_project, sail_step
@@ -118,28 +118,20 @@ class ProposalMap:
 
     def clipped(self, ratio: Tensor, adv: Tensor) -> Tensor:
         """l(rho, A) = min(rho A, clip(rho, 1-eps, 1+eps) A) (Eq. ppo_surrogates)."""
-        eps = self.clip
-        return torch.minimum(ratio * adv, ratio.clamp(1 - eps, 1 + eps) * adv)
+        return clipped(ratio, adv, self.clip)
 
     def surrogates(self, mb: Minibatch, log_ratio: Tensor) -> tuple[list[Tensor], Tensor]:
         """Eq. (ppo_surrogates): L_i and L_team (team ratio = product over robot carriers)."""
-        adv = mb.adv[:, None]
-        per = self.clipped(log_ratio.exp(), adv) * mb.active
-        L_ind = list(per.mean(0).unbind(0))
-        L_team = self.clipped(log_ratio.sum(1).exp(), mb.adv).mean()
-        return L_ind, L_team
-
-    def surrogates_against(self, mb: Minibatch, logp: Tensor, reference: Tensor) -> Surrogates:
-        log_ratio = self.ratio_against(mb, logp, reference)
-        return Surrogates(log_ratio, *self.surrogates(mb, log_ratio))
+        values = surrogate_values(log_ratio, mb.adv, mb.active, self.clip)
+        return list(values[:self.n_agents].unbind(0)), values[self.n_agents]
 
     def ratio_stats(self, log_ratio: Tensor, active: Tensor) -> dict[str, float]:
         with torch.no_grad():
             n = active.sum().clamp(min=1)
             ratio = log_ratio.exp()
             kl = ((ratio - 1) - log_ratio)[active].sum() / n
-            clipped = ((ratio - 1).abs() > self.clip)[active].sum() / n
-        return {"approx_kl": float(kl), "clip_frac": float(clipped)}
+            outside = ((ratio - 1).abs() > self.clip)[active].sum() / n
+        return {"approx_kl": float(kl), "clip_frac": float(outside)}
 
     def start_point(self, mb: Minibatch, tau: float, kappa: float):
         """One forward at the current parameters (all carriers attached) and the
@@ -149,37 +141,35 @@ class ProposalMap:
         diagnostics). Where the two ratios agree bitwise on the minibatch (on-policy data:
         the actors' log-density is the learner's), ``start is behaviour``, and whatever is
         computed on one serves the other. From a_ST on, the surrogates and their first and
-        second derivatives are the closed form of common/algos/surrogate_chain.py (the
-        unrolled SAIL gradient keeps the autograd graph of ``center``).
+        second derivatives are the closed form of common/algos/surrogate_chain.py.
         Returns (a_ST, SAIL step or None, behaviour, start)."""
         a_st = self.tree_actions(mb, tau, grad=True)
         step = self.sail_step(mb, a_st, kappa)
-        references = (mb.logp_old, mb.logp_start)
-        if self.uses_sail and self.sail_grad == "unrolled":
-            logp = proposal_log_prob(self.center(mb, a_st, kappa), self.log_std(), mb.a_robot)
-            refs = torch.stack([logp.detach() if r is None else r for r in references])
-            log_ratios = torch.where(mb.active, logp - refs, torch.zeros_like(logp))
-            values = torch.stack([surrogate_values(r, mb.adv, mb.active, self.clip) for r in log_ratios])
-        else:
-            values, log_ratios = surrogate_chain.chain_surrogates(a_st, self.log_std(), mb, step, references,
-                                                                  self.clip)
+        values, log_ratios = self.surrogates_at(mb, a_st, self.log_std(), kappa, step,
+                                                (mb.logp_old, mb.logp_start))
         N = self.n_agents
         behaviour, start = (Surrogates(r, list(v[:N].unbind(0)), v[N]) for r, v in zip(log_ratios, values))
         if torch.equal(log_ratios[1], log_ratios[0]):
             return a_st, step, behaviour, behaviour
         return a_st, step, behaviour, start
 
+    def surrogates_at(self, mb: Minibatch, a_st: Tensor, log_std: Tensor, kappa: float, step: SailStep | None,
+                      references) -> tuple[Tensor, Tensor]:
+        """Surrogates [R, N+1] and log-ratios [R, B, N] at ``a_st`` against ``references``
+        (``surrogate_chain.chain_surrogates``; ``step``: the SAIL step at these values of
+        a_ST). The unrolled SAIL gradient keeps the autograd graph of ``center``."""
+        if self.uses_sail and self.sail_grad == "unrolled":
+            logp = proposal_log_prob(self.center(mb, a_st, kappa), log_std, mb.a_robot)
+            return surrogate_chain.surrogates_of_log_density(logp, mb, references, self.clip)
+        return surrogate_chain.chain_surrogates(a_st, log_std, mb, step, references, self.clip)
+
     def carrier_surrogate(self, mb: Minibatch, a_st: Tensor, log_std: Tensor, kappa: float,
                           step: SailStep | None, i: int) -> tuple[Tensor, Tensor]:
         """Carrier ``i``'s log-ratio against the behaviour policy [B] (detached) and its
-        surrogate L_i (Eq. ppo_surrogates) at ``a_st``, with ``step`` the SAIL step at
-        these values of a_ST (the sequential step's per-carrier forward)."""
-        if self.uses_sail and self.sail_grad == "unrolled":
-            log_ratio = self.log_ratio(mb, self.center(mb, a_st, kappa), log_std)[:, i]
-            return log_ratio.detach(), (self.clipped(log_ratio.exp(), mb.adv) * mb.active[:, i]).mean()
-        values, log_ratios = surrogate_chain.chain_surrogates(a_st, log_std, mb, step if self.uses_sail else None,
-                                                              (mb.logp_old,), self.clip)
-        return log_ratios[0, :, i], values[0, i]
+        surrogate L_i (Eq. ppo_surrogates) at ``a_st`` (the sequential step's per-carrier
+        forward)."""
+        values, log_ratios = self.surrogates_at(mb, a_st, log_std, kappa, step, (mb.logp_old,))
+        return log_ratios[0, :, i].detach(), values[0, i]
 
     def gap(self, a_st: Tensor, s: Surrogates, with_hvp: bool):
         """Eq. (talo_gap) on surrogates ``s`` built on the forward that produced ``a_st``:

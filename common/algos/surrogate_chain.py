@@ -7,13 +7,13 @@ small: the proposal center c is affine in a_ST (the SAIL map's implicit step, Eq
 sail_jacobian, c = x* - H^{-1} (offset - a): Jacobian H^{-1}; or the identity center),
 the log-density of the stored a_prop is a sum over action dimensions of closed-form
 terms in (c_k, log_std_k) (common/policy/proposal.py), and each surrogate is a mean over
-samples of a clipped exponential of a log-ratio. As an autograd graph this is a few
-hundred ops on [B, 9] tensors, walked by every backward pass of TALO's gap (the blocks
-of d, g_team, the diagnostics' gap) and again by the double backward; on the learner's
-512-sample minibatches the engine's per-op cost, not arithmetic, made it most of an
-update (docs/scaling.md, "The learner's update, 2026-12-06"). Here it is one
-``autograd.Function`` whose backward (``ChainVJP``) is differentiable once in closed form
-(the Hessian-vector product), the pattern of ``tree_torch.TreeCore``.
+samples of a clipped exponential of a log-ratio. As an autograd graph this is about a
+thousand small ops on [B, 9] tensors per minibatch step, walked by every backward pass of
+TALO's gap (the blocks of d, g_team, the diagnostics' gap) and again by the double
+backward, each op costing the engine's per-op overhead rather than arithmetic. Here it is
+one ``autograd.Function`` whose backward (``ChainVJP``) is differentiable once in closed
+form (the Hessian-vector product), the pattern of ``tree_torch.TreeCore``; the figures
+are in docs/scaling.md ("The learner's update, 2026-12-06 afternoon").
 
 Notation per sample b, action dimension k of carrier j = k // 3 (center c_k, stored
 a_k, mu_k = atanh(clip(c_k)), u_k = atanh(a_k), sigma_k = exp(log_std_k)):
@@ -131,11 +131,17 @@ def chain_surrogates(a_st: Tensor, log_std: Tensor, mb, step, references, clip: 
                                 mb.adv, mb.active, float(clip), config)
 
 
-def reference_surrogates(a_st: Tensor, log_std: Tensor, mb, step, references, clip: float,
-                         config: ProposalConfig = ProposalConfig()) -> tuple[Tensor, Tensor]:
-    """``chain_surrogates`` as one autograd graph: what the closed form is tested against."""
-    logp = proposal_log_prob(center_value(a_st, mb.fixed, mb.a_prop, step), log_std, mb.a_robot, config)
+def surrogates_of_log_density(logp: Tensor, mb, references, clip: float) -> tuple[Tensor, Tensor]:
+    """Surrogates [R, N+1] and log-ratios [R, B, N] from the log-density ``logp`` [B, N] of
+    the stored a_prop, as an autograd graph (references as in ``chain_surrogates``)."""
     refs = torch.stack([logp.detach() if r is None else r.to(logp.dtype) for r in references])
     log_ratios = torch.where(mb.active, logp - refs, torch.zeros_like(logp))
     values = torch.stack([surrogate_values(r, mb.adv, mb.active, clip) for r in log_ratios])
     return values, log_ratios
+
+
+def reference_surrogates(a_st: Tensor, log_std: Tensor, mb, step, references, clip: float,
+                         config: ProposalConfig = ProposalConfig()) -> tuple[Tensor, Tensor]:
+    """``chain_surrogates`` as one autograd graph: what the closed form is tested against."""
+    logp = proposal_log_prob(center_value(a_st, mb.fixed, mb.a_prop, step), log_std, mb.a_robot, config)
+    return surrogates_of_log_density(logp, mb, references, clip)
