@@ -166,10 +166,36 @@ def tree_st_vjp(q, obs, leaf, nodes, sides, t_near, g1, shape_w, shape_K):
     return gw, gb, gK, gbeta
 
 
+@njit(cache=True, inline="always")
+def _leaf_off_route(right, m1, m2, depth, g1, g2, path, f1, f2):
+    """Walk from the root by the hard decisions, leaving them at levels ``m1`` and ``m2``
+    (-1: not at all): fills the path's nodes and its signed sigmoid'/sigmoid'' factors
+    and returns the leaf reached."""
+    node = 0
+    for level in range(depth):
+        go_right = right[node] != (level == m1 or level == m2)
+        path[level] = node
+        sign = 1.0 if go_right else -1.0
+        f1[level] = sign * g1[node]
+        f2[level] = sign * g2[node]
+        node = 2 * node + 1 + (1 if go_right else 0)
+    return node - right.shape[0]
+
+
 @njit(cache=True, nogil=True, fastmath=_FAST)
 def tree_st_hvp(q, Vw, Vb, VK, Vbeta, K, beta, obs, margins, t_near, tau, depth):
     """Both halves of the double backward along V = (Vw, Vb, VK, Vbeta): the forward
-    derivative of mix [N,B,A] and Hess(sum_b q_b . mix_b) V in (w, b, K, beta)."""
+    derivative of mix [N,B,A] and Hess(sum_b q_b . mix_b) V in (w, b, K, beta).
+
+    Per sample only the leaves at most two mismatches off the hard route have second
+    derivatives: the hard leaf, the D leaves that leave the route once (at level m) and
+    the D(D-1)/2 that leave it twice (m1 < m2). Their weights' derivatives in the route's
+    margins are products of the path's sigmoid' factors f1 (sigmoid'' f2 on the diagonal)
+    with every other factor at its hard value, which gives per level j, with
+    S = sum_j f1_j dm_j along the leaf's path:
+      no mismatch:  d weight / dm_j = f1_j,   d^2 weight . dm |_j = f2_j dm_j + f1_j (S - f1_j dm_j)
+      one, at m:    d weight / dm_m = f1_m;   |_m = f2_m dm_m + f1_m (S - f1_m dm_m), |_j = f1_j f1_m dm_m
+      two, m1, m2:  first derivatives 0;      |_m1 = f1_m1 f1_m2 dm_m2, |_m2 = f1_m2 f1_m1 dm_m1."""
     N, B, O = obs.shape
     n_internal, L, A = Vw.shape[1], K.shape[1], K.shape[2]
     dmix = np.zeros((N, B, A))
@@ -185,10 +211,20 @@ def tree_st_hvp(q, Vw, Vb, VK, Vbeta, K, beta, obs, margins, t_near, tau, depth)
     path = np.empty(depth, dtype=np.int64)
     f1 = np.empty(depth)               # d(factor)/dm along the leaf's path (signed)
     f2 = np.empty(depth)
-    miss = np.empty(depth, dtype=np.bool_)
     dw1 = np.empty(depth)              # d weight_l / d m_{path_j}
+    second = np.empty(depth)           # (d^2 weight_l . dm)_j
     t = np.empty(A)
     du = np.empty(A)
+    # the leaves with second derivatives, as the levels (m1, m2) where they leave the route
+    n_cases = 1 + depth + depth * (depth - 1) // 2
+    misses = np.full((n_cases, 2), -1, dtype=np.int64)
+    for m1 in range(depth):
+        misses[1 + m1, 0] = m1
+    c = 1 + depth
+    for m1 in range(depth):
+        for m2 in range(m1 + 1, depth):
+            misses[c, 0], misses[c, 1] = m1, m2
+            c += 1
     for n in range(N):
         for s in range(B):
             o = obs[n, s]
@@ -200,31 +236,32 @@ def tree_st_hvp(q, Vw, Vb, VK, Vbeta, K, beta, obs, margins, t_near, tau, depth)
                 g2[k] = p * (1.0 - p) * (1.0 - 2.0 * p) / (tau * tau)
                 dm[k] = _dot(Vw[n, k], o) - Vb[n, k]
                 nu[k] = 0.0
-            for lf in range(L):
-                node, n_miss = 0, 0
-                for level in range(depth):
-                    go_right = (lf >> (depth - 1 - level)) & 1 == 1
-                    path[level] = node
-                    miss[level] = go_right != right[node]
-                    n_miss += 1 if miss[level] else 0
-                    sign = 1.0 if go_right else -1.0
-                    f1[level] = sign * g1[node]
-                    f2[level] = sign * g2[node]
-                    node = 2 * node + 1 + (1 if go_right else 0)
-                if n_miss > 2:
-                    continue
-                weight = 1.0 if n_miss == 0 else 0.0
-                s_l = 0.0                      # d weight_l along V
-                for level in range(depth):
-                    dw1[level] = f1[level] if n_miss == 0 or (n_miss == 1 and miss[level]) else 0.0
-                    s_l += dw1[level] * dm[path[level]]
-                near = -1                      # the leaf's row of t_near, if it has one
-                if n_miss == 0:
-                    near = 0
-                elif n_miss == 1:
-                    for level in range(depth):
-                        if miss[level]:
-                            near = level + 1
+            for case in range(n_cases):
+                m1, m2 = misses[case, 0], misses[case, 1]
+                lf = _leaf_off_route(right, m1, m2, depth, g1, g2, path, f1, f2)
+                S = 0.0
+                for j in range(depth):
+                    S += f1[j] * dm[path[j]]
+                if m1 < 0:                                   # the hard leaf
+                    for j in range(depth):
+                        dw1[j] = f1[j]
+                        second[j] = f2[j] * dm[path[j]] + f1[j] * (S - f1[j] * dm[path[j]])
+                    s_l, weight, near = S, 1.0, 0
+                elif m2 < 0:                                 # one mismatch, at m1
+                    fm, dmm = f1[m1], dm[path[m1]]
+                    for j in range(depth):
+                        dw1[j] = 0.0
+                        second[j] = f1[j] * fm * dmm
+                    dw1[m1] = fm
+                    second[m1] = f2[m1] * dmm + fm * (S - fm * dmm)
+                    s_l, weight, near = fm * dmm, 0.0, m1 + 1
+                else:                                        # two mismatches
+                    for j in range(depth):
+                        dw1[j] = 0.0
+                        second[j] = 0.0
+                    second[m1] = f1[m1] * f1[m2] * dm[path[m2]]
+                    second[m2] = f1[m2] * f1[m1] * dm[path[m1]]
+                    s_l, weight, near = 0.0, 0.0, -1
                 q_t, q_du = 0.0, 0.0           # q . t_l,  q . (1 - t_l^2) dU_l
                 for a in range(A):
                     t[a] = t_near[n, s, near, a] if near >= 0 else _tanh(_dot(K[n, lf, a], o) + beta[n, lf, a])
@@ -232,17 +269,10 @@ def tree_st_hvp(q, Vw, Vb, VK, Vbeta, K, beta, obs, margins, t_near, tau, depth)
                     q_t += q[n, s, a] * t[a]
                     q_du += q[n, s, a] * (1.0 - t[a] * t[a]) * du[a]
                     dmix[n, s, a] += s_l * t[a] + weight * (1.0 - t[a] * t[a]) * du[a]
-                # margins: sum_k' d2 weight / dm_k dm_k' dm_k' (q . t) + d weight / dm_k (q . (1-t^2) dU)
+                # margins: (d^2 weight . dm) (q . t) + d weight (q . (1-t^2) dU)
                 for j in range(depth):
-                    second = 0.0
-                    for jj in range(depth):
-                        if jj == j:
-                            if n_miss == 0 or (n_miss == 1 and miss[j]):
-                                second += f2[j] * dm[path[j]]
-                        elif n_miss == (1 if miss[j] else 0) + (1 if miss[jj] else 0):
-                            second += f1[j] * f1[jj] * dm[path[jj]]
-                    nu[path[j]] += second * q_t + dw1[j] * q_du
-                if n_miss <= 1:
+                    nu[path[j]] += second[j] * q_t + dw1[j] * q_du
+                if m2 < 0:
                     # gains: s_l q (1 - t^2) + weight q (-2 t (1 - t^2)) dU
                     for a in range(A):
                         d1 = 1.0 - t[a] * t[a]
