@@ -25,7 +25,7 @@ TIERS = {
         "graded_outcomes", "instrument", "kernels_nogil", "mechanism_metrics", "outcome_metrics", "parallel_env",
         "payload_points", "progress", "proposal", "proposal_kernels", "protocol", "qp", "qp_cli",
         "readme", "report", "report_ci", "row_kernels", "safety", "safety_honesty", "safety_kkt",
-        "safety_profiles", "sail", "sail_kernel", "sparse_tree", "stats", "talo", "talo_fast", "tree",
+        "safety_profiles", "sail", "sail_kernel", "sparse_tree", "stats", "surrogate_chain", "talo", "talo_fast", "tree",
         "tree_grad_kernels", "tree_kernel", "wire",
     },
     "sweep": {"algos_learning", "qp_properties", "wire_fuzz"},
@@ -35,7 +35,7 @@ TIERS = {
         "suite_eval", "tensorboard", "thread_placement", "tracking", "transport_limits", "video",
     },
     "system": {
-        "adam", "bench_system", "bundle", "cli_errors", "day_one", "faults", "fuzz_handlers", "layers",
+        "adam", "bench_learner", "bench_system", "bundle", "cli_errors", "day_one", "faults", "fuzz_handlers", "layers",
         "multihost", "ray", "rollout", "supervisor", "tls_acl", "trace_stream",
     },
 }

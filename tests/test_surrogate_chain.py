@@ -124,6 +124,7 @@ def test_talo_gap_matches_the_autograd_chain(name, monkeypatch):
                 assert _rel(a, b) < 1e-5
 
 
+@pytest.mark.sweep   # two whole updates of six methods, twice: about 15 s
 @pytest.mark.parametrize("name", ["sage", "talo_cbf", "sail_cbf", "joint_cbf", "happo", "happo_cbf"])
 def test_an_update_steps_where_the_autograd_chain_steps(name, monkeypatch):
     """Two whole updates (every minibatch step, HAPPO's per-carrier surrogates with the M
@@ -168,3 +169,4 @@ def test_the_carrier_surrogate_is_happos(name):
     grads = [torch.cat([g.reshape(-1) for g in torch.autograd.grad(s, P.groups[i], retain_graph=True,
                                                                  allow_unused=False)]) for s in (surr, ref)]
     assert float(grads[1].abs().max()) > 0 and _rel(*grads) < 1e-5
+

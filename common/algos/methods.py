@@ -7,6 +7,7 @@ its own module.
 | what a method is (shield, SAIL, TALO, update step)     | common/algos/registry.py        |
 | batch checks, GAE/returns, ``Minibatch``               | common/algos/batch.py           |
 | a_ST, SAIL center, log-ratios, PPO surrogates          | common/algos/proposal_map.py    |
+| the surrogates' derivatives from a_ST in closed form   | common/algos/surrogate_chain.py |
 | sequential (HAPPO) update step                         | common/algos/sequential.py      |
 | joint (TALO / g_ind) update step                       | common/algos/joint.py           |
 | g_TALO, W_gap and its HVP                              | common/algos/talo.py            |

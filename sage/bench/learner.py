@@ -71,6 +71,7 @@ def bench_learner(T: int = 64, K: int = 32, obs_dim: int | None = None, rows: in
         "update_cpu_s": update_cpu_s,
         "cpu_ratio_vs_happo": {k: v / update_cpu_s["happo"] for k, v in update_cpu_s.items()},
         "samples_per_cpu_s": {k: T * K / v for k, v in update_cpu_s.items()},
+        "cpu_us_per_sample": {k: 1e6 * v / (T * K) for k, v in update_cpu_s.items()},
         "samples_per_s": {k: T * K / v for k, v in update_s.items()},
         "target": f"sage update <= {TARGET_RATIO:g}x happo update (thread CPU)",
         "sage_within_target": (update_cpu_s["sage"] / update_cpu_s["happo"] <= TARGET_RATIO)
@@ -105,7 +106,7 @@ def _bench_handler(args) -> int:
               f"{out['epochs']} epochs x {out['minibatches']} minibatches")
         for name, cpu in out["update_cpu_s"].items():
             print(f"  {name:10s} thread CPU {cpu:7.3f} s ({out['cpu_ratio_vs_happo'][name]:5.2f}x happo), "
-                  f"{out['samples_per_cpu_s'][name]:7.0f} samples/CPU-s   wall {out['update_s'][name]:7.3f} s "
+                  f"{out['samples_per_cpu_s'][name]:7.0f} samples/CPU-s ({out['cpu_us_per_sample'][name]:5.0f} us/sample)   wall {out['update_s'][name]:7.3f} s "
                   f"({out['ratio_vs_happo'][name]:5.2f}x)")
         print(f"  target: {out['target']}: {'met' if out['sage_within_target'] else 'not met'}")
     return 0

@@ -1,0 +1,11 @@
+"""`sage bench learner`'s report on a tiny batch: the cost per sample and the rate agree."""
+import pytest
+
+from sage.bench.learner import bench_learner
+
+
+def test_bench_learner_reports_the_cost_per_sample():
+    out = bench_learner(T=2, K=4, obs_dim=8, rows=4, repeats=1, methods=("happo", "sage"))
+    for name in ("happo", "sage"):
+        assert out["cpu_us_per_sample"][name] > 0
+        assert out["cpu_us_per_sample"][name] * out["samples_per_cpu_s"][name] == pytest.approx(1e6)
