@@ -42,7 +42,7 @@ def _inputs(seed, sail, dtype=torch.float32):
     adv = randn(B)
     adv[:4] = 0.0                                                                # ties of the minimum
     mb = SimpleNamespace(fixed=fixed, a_prop=a_prop, a_robot=torch.where(fixed, torch.zeros_like(a_prop), a_prop),
-                         adv=adv, active=active)
+                         adv=adv, active=active, density_terms=None)
     step = None
     if sail:
         M = randn(B, D, D, scale=0.3)

@@ -8,6 +8,7 @@ the batch carries ``a_prop`` and the actors' ``logp`` of it, the behaviour polic
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,6 +17,7 @@ from torch import Tensor
 
 from common.algos.config import AlgoConfig
 from common.algos.critic import TeamCritic, ValueNormalizer, compute_gae, next_values
+from common.policy.proposal import density_terms
 from common.safety_rows import VIOLATION_TOL, SafetyRows
 from common.spec import CARRIER_ACT_DIM
 from common.wire import SCHEMAS
@@ -46,6 +48,9 @@ class Minibatch:
     # diagnostics' reference. None: the current parameters are the start (the update's
     # first minibatch, or a caller outside ``update``), so the reference is the forward itself
     logp_start: Tensor | None = None
+    # ``proposal.density_terms(a_robot)`` [B, D] each, computed once per batch (None: at each use)
+    u_robot: Tensor | None = None
+    log_jac_robot: Tensor | None = None
 
     @property
     def a_robot(self) -> Tensor:
@@ -53,6 +58,15 @@ class Minibatch:
         which may sit on the box face (|a| = 1, outside the proposal's support): it has no
         density and no ratio, so it is never passed to the density as an action."""
         return torch.where(self.fixed, torch.zeros_like(self.a_prop), self.a_prop)
+
+    @property
+    def density_terms(self) -> tuple[Tensor, Tensor] | None:
+        """What ``proposal_log_prob`` takes from a_robot alone, if stored."""
+        return None if self.u_robot is None else (self.u_robot, self.log_jac_robot)
+
+    def with_density_terms(self) -> "Minibatch":
+        u, log_jac = density_terms(self.a_robot)
+        return dataclasses.replace(self, u_robot=u, log_jac_robot=log_jac)
 
     def index(self, idx: Tensor) -> "Minibatch":
         """The rows ``idx`` (a 1-D index tensor) of every field; index_select is
@@ -145,7 +159,7 @@ def prepare_batch(batch: dict[str, np.ndarray], critic: TeamCritic, value_norm: 
         adv=adv_t.reshape(B),
         ret=ret_norm.reshape(B),
         active=~fixed.view(B, n_agents, CARRIER_ACT_DIM).any(-1),
-    )
+    ).with_density_terms()
     return data, batch_diagnostics(batch, adv, ret)
 
 

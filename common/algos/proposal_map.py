@@ -103,14 +103,15 @@ class ProposalMap:
         with torch.no_grad():
             a_st = self.tree_actions(data, tau, grad=False)
             center = self.center(data, a_st, kappa, step=self.sail_step(data, a_st, kappa))
-            return proposal_log_prob(center, self.log_std(), data.a_robot).detach()
+            return proposal_log_prob(center, self.log_std(), data.a_robot, terms=data.density_terms).detach()
 
     # ------------------------------------------------------------------ ratios and surrogates
 
     def log_ratio(self, mb: Minibatch, center: Tensor, log_std: Tensor) -> Tensor:
         """Per-carrier log-likelihood ratio against the behaviour policy at the stored
         a_prop [B, N]; 0 on human blocks (their density is never evaluated: ``Minibatch.a_robot``)."""
-        return self.ratio_against(mb, proposal_log_prob(center, log_std, mb.a_robot), mb.logp_old)
+        return self.ratio_against(mb, proposal_log_prob(center, log_std, mb.a_robot, terms=mb.density_terms),
+                                  mb.logp_old)
 
     @staticmethod
     def ratio_against(mb: Minibatch, logp: Tensor, reference: Tensor) -> Tensor:
@@ -159,7 +160,7 @@ class ProposalMap:
         (``surrogate_chain.chain_surrogates``; ``step``: the SAIL step at these values of
         a_ST). The unrolled SAIL gradient keeps the autograd graph of ``center``."""
         if self.uses_sail and self.sail_grad == "unrolled":
-            logp = proposal_log_prob(self.center(mb, a_st, kappa), log_std, mb.a_robot)
+            logp = proposal_log_prob(self.center(mb, a_st, kappa), log_std, mb.a_robot, terms=mb.density_terms)
             return surrogate_chain.surrogates_of_log_density(logp, mb, references, self.clip)
         return surrogate_chain.chain_surrogates(a_st, log_std, mb, step, references, self.clip)
 

@@ -39,7 +39,7 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from common.algos import surrogate_kernels as kernels
-from common.policy.proposal import ProposalConfig, proposal_log_prob
+from common.policy.proposal import ProposalConfig, density_terms, proposal_log_prob
 
 
 def clipped(ratio: Tensor, adv: Tensor, clip: float) -> Tensor:
@@ -75,14 +75,14 @@ class SurrogateChain(torch.autograd.Function):
     of common/algos/surrogate_kernels.py."""
 
     @staticmethod
-    def forward(ctx, a_st, log_std, fixed, a_prop, a_robot, step, references, adv, active, clip, config):
+    def forward(ctx, a_st, log_std, fixed, a_prop, a_robot, terms, step, references, adv, active, clip, config):
         center = center_value(a_st, fixed, a_prop, step)
-        logp = proposal_log_prob(center, log_std, a_robot, config)
+        logp = proposal_log_prob(center, log_std, a_robot, config, terms=terms)
         refs = torch.stack([logp if r is None else r.to(logp.dtype) for r in references])
         log_ratios = torch.where(active, logp - refs, torch.zeros_like(logp))
         values = torch.stack([surrogate_values(r, adv, active, clip) for r in log_ratios])
         active_np = active.contiguous().numpy()
-        constants = kernels.chain_constants(_numpy(center), _numpy(log_std), _numpy(a_robot), _numpy(log_ratios),
+        constants = kernels.chain_constants(_numpy(center), _numpy(log_std), _numpy(terms[0]), _numpy(log_ratios),
                                             _numpy(adv), active_np, float(clip), 1.0 - config.center_eps)
         H_inv = np.empty((0, 0, 0)) if step is None else _numpy(step.H_inv)
         ctx.chain = (constants, active_np, H_inv, (~fixed).contiguous().numpy())
@@ -93,8 +93,8 @@ class SurrogateChain(torch.autograd.Function):
     @staticmethod
     def backward(ctx, gbar, _):
         if gbar is None:
-            return (None,) * 11
-        return (*ChainVJP.apply(gbar, *ctx.saved_tensors, ctx.chain),) + (None,) * 9
+            return (None,) * 12
+        return (*ChainVJP.apply(gbar, *ctx.saved_tensors, ctx.chain),) + (None,) * 10
 
 
 class ChainVJP(torch.autograd.Function):
@@ -127,7 +127,9 @@ def chain_surrogates(a_st: Tensor, log_std: Tensor, mb, step, references, clip: 
     """Surrogates [R, N+1] and log-ratios [R, B, N] of minibatch ``mb`` (a ``Minibatch``) at
     a_ST against ``references`` (R log-densities [B, N], None: this forward's own), by
     ``SurrogateChain``; ``step``: SAIL's implicit step, None for the identity center."""
-    return SurrogateChain.apply(a_st, log_std, mb.fixed, mb.a_prop, mb.a_robot, step, tuple(references),
+    a_robot = mb.a_robot
+    terms = mb.density_terms or density_terms(a_robot, config)
+    return SurrogateChain.apply(a_st, log_std, mb.fixed, mb.a_prop, a_robot, terms, step, tuple(references),
                                 mb.adv, mb.active, float(clip), config)
 
 
@@ -143,5 +145,6 @@ def surrogates_of_log_density(logp: Tensor, mb, references, clip: float) -> tupl
 def reference_surrogates(a_st: Tensor, log_std: Tensor, mb, step, references, clip: float,
                          config: ProposalConfig = ProposalConfig()) -> tuple[Tensor, Tensor]:
     """``chain_surrogates`` as one autograd graph: what the closed form is tested against."""
-    logp = proposal_log_prob(center_value(a_st, mb.fixed, mb.a_prop, step), log_std, mb.a_robot, config)
+    logp = proposal_log_prob(center_value(a_st, mb.fixed, mb.a_prop, step), log_std, mb.a_robot, config,
+                             terms=mb.density_terms)
     return surrogates_of_log_density(logp, mb, references, clip)

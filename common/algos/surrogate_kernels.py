@@ -27,10 +27,11 @@ def _slope(ratio, adv, clip):
 
 
 @njit(cache=True, nogil=True)
-def chain_constants(center, log_std, a_robot, log_ratios, adv, active, clip, lim):
-    """What the derivatives read, per sample: mu'_k and mu''_k of the clipped atanh, z_k,
-    d log pi / d c_k (g), d log pi / d log_std_k (h), and the surrogates' slopes in log pi
-    per reference r, individual ``w_ind`` [R,B,N] and team ``w_team`` [R,B,N]."""
+def chain_constants(center, log_std, u, log_ratios, adv, active, clip, lim):
+    """What the derivatives read, per sample (``u`` = atanh of the stored a_prop): mu'_k and
+    mu''_k of the clipped atanh, z_k, d log pi / d c_k (g), d log pi / d log_std_k (h), and
+    the surrogates' slopes in log pi per reference r, individual ``w_ind`` [R,B,N] and team
+    ``w_team`` [R,B,N]."""
     B, D = center.shape
     R, _, N = log_ratios.shape
     inv_sigma = np.exp(-log_std)
@@ -45,7 +46,7 @@ def chain_constants(center, log_std, a_robot, log_ratios, adv, active, clip, lim
             m1 = 1.0 / (1.0 - cc * cc) if (c >= -lim and c <= lim) else 0.0
             mu1[b, k] = m1
             mu2[b, k] = 2.0 * cc * m1 * m1
-            zk = (math.atanh(a_robot[b, k]) - math.atanh(cc)) * inv_sigma[k]
+            zk = (u[b, k] - math.atanh(cc)) * inv_sigma[k]
             z[b, k] = zk
             g[b, k] = zk * inv_sigma[k] * m1
             h[b, k] = zk * zk - 1.0

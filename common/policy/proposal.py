@@ -138,26 +138,36 @@ def proposal_sample_np(center, log_std, rng: np.random.Generator, config: Propos
 # ----------------------------------------------------------------------------- torch (learner)
 
 
-def proposal_log_prob(center, log_std, a_prop, config: ProposalConfig = _DEFAULT):
+def density_terms(a_prop, config: ProposalConfig = _DEFAULT):
+    """What the log-density takes from the stored a_prop alone [B,d] (float64): atanh(a)
+    and the change of variables log(1 - a^2) (as log1p(-a) + log1p(a)). The learner computes
+    them once per batch and passes them to every ``proposal_log_prob`` of its minibatches."""
+    import torch
+
+    a = torch.as_tensor(a_prop, dtype=torch.float64)
+    if not bool((torch.isfinite(a) & (a.abs() < 1.0)).all()):
+        raise ValueError(_A_PROP_OUTSIDE)
+    return torch.atanh(a), torch.log1p(-a) + torch.log1p(a)
+
+
+def proposal_log_prob(center, log_std, a_prop, config: ProposalConfig = _DEFAULT, terms=None):
     """Torch twin of `proposal_log_prob_np`: [B,N] float64, differentiable in center and log_std.
 
     Computed in float64 whatever the input dtype, because atanh/log(1-a^2) near the box
-    faces lose digits in float32 (1 - a is ~1e-6 there).
+    faces lose digits in float32 (1 - a is ~1e-6 there). ``terms``: ``density_terms(a_prop)``
+    if already computed (the same values; a_prop is then only checked for its shape).
     """
     import torch
 
     _check(center, log_std, a_prop)
     center, log_std = center.to(torch.float64), log_std.to(torch.float64)
-    a = torch.as_tensor(a_prop, dtype=torch.float64, device=center.device)
-    if not bool((torch.isfinite(a) & (a.abs() < 1.0)).all()):
-        raise ValueError(_A_PROP_OUTSIDE)
+    u, log_jac = density_terms(a_prop, config) if terms is None else terms
     n = _n_agents(center.shape[1], config.act_dim)
     lim = 1.0 - config.center_eps
     mu = torch.atanh(center.clamp(-lim, lim))
-    u = torch.atanh(a)
     z = (u - mu) * torch.exp(-log_std)
-    per_dim = -0.5 * z * z - log_std - _LOG_SQRT_2PI - (torch.log1p(-a) + torch.log1p(a))
-    return per_dim.reshape(a.shape[0], n, config.act_dim).sum(-1)
+    per_dim = -0.5 * z * z - log_std - _LOG_SQRT_2PI - log_jac
+    return per_dim.reshape(u.shape[0], n, config.act_dim).sum(-1)
 
 
 def proposal_entropy(log_std, center=None, n_samples: int = 16, generator=None, config: ProposalConfig = _DEFAULT):
