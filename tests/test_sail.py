@@ -9,7 +9,15 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from common.policy.sail import SailConfig, absorb_fixed, normalize_rows, sail_project, sail_project_np
+from common.policy.sail import (
+    SailConfig,
+    absorb_fixed,
+    normalize_rows,
+    sail_implicit_step_np,
+    sail_project,
+    sail_project_np,
+    sail_rows_np,
+)
 
 D = 9
 FAST = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -299,3 +307,29 @@ def test_unrolled_gradients_match_finite_differences(seed, kappa):
             args_m[k].flat[i] -= eps
             fd = (sail_project_np(*args_p, mask, kappa) - sail_project_np(*args_m, mask, kappa)) / (2 * eps)
             np.testing.assert_allclose(jac[k].numpy().reshape(D, -1)[:, i], fd.ravel(), atol=1e-6)
+
+
+def test_prepared_rows_give_the_same_implicit_step():
+    """The learner prepares a batch's rows once (``sail_rows_np``) and reuses them at every
+    solve: the same bits as preparing them at each solve, human blocks included; a bad a_ST
+    or kappa is still refused."""
+    rng = np.random.default_rng(11)
+    B, M = 32, 34
+    a = rng.uniform(-1.2, 1.2, (B, D))
+    C = rng.normal(size=(B, M, D)) * (rng.random((B, M, 1)) < 0.8)
+    c = rng.normal(size=(B, M))
+    mask = rng.random((B, M)) < 0.8
+    fixed = np.repeat(rng.random((B, D // 3)) < 0.3, 3, axis=1)
+    human = rng.uniform(-1, 1, (B, D))
+    rows = sail_rows_np(C, c, mask, fixed, human)
+    for kappa in (0.5, 20.0):
+        want = sail_implicit_step_np(a, C, c, mask, kappa, fixed, human)
+        got = sail_implicit_step_np(a, C, c, mask, kappa, fixed, human, rows=rows)
+        for x, y in zip(got, want):
+            assert np.array_equal(x, y)
+    bad = a.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(ValueError, match="a_st"):
+        sail_implicit_step_np(bad, C, c, mask, 1.0, fixed, human, rows=rows)
+    with pytest.raises(ValueError, match="kappa"):
+        sail_implicit_step_np(a, C, c, mask, -1.0, fixed, human, rows=rows)

@@ -18,6 +18,7 @@ from torch import Tensor
 from common.algos.config import AlgoConfig
 from common.algos.critic import TeamCritic, ValueNormalizer, compute_gae, next_values
 from common.policy.proposal import density_terms
+from common.policy.sail import sail_rows_np
 from common.safety_rows import VIOLATION_TOL, SafetyRows
 from common.spec import CARRIER_ACT_DIM
 from common.wire import SCHEMAS
@@ -51,6 +52,11 @@ class Minibatch:
     # ``proposal.density_terms(a_robot)`` [B, D] each, computed once per batch (None: at each use)
     u_robot: Tensor | None = None
     log_jac_robot: Tensor | None = None
+    # ``sail.sail_rows_np``'s rows (Cn [B, M, D], cn [B, M], keep [B, M]), prepared once per
+    # batch by the SAIL methods (None: at each solve)
+    sail_Cn: Tensor | None = None
+    sail_cn: Tensor | None = None
+    sail_keep: Tensor | None = None
 
     @property
     def a_robot(self) -> Tensor:
@@ -63,6 +69,17 @@ class Minibatch:
     def density_terms(self) -> tuple[Tensor, Tensor] | None:
         """What ``proposal_log_prob`` takes from a_robot alone, if stored."""
         return None if self.u_robot is None else (self.u_robot, self.log_jac_robot)
+
+    @property
+    def sail_rows(self) -> tuple[Tensor, Tensor, Tensor] | None:
+        return None if self.sail_Cn is None else (self.sail_Cn, self.sail_cn, self.sail_keep)
+
+    def with_sail_rows(self, config) -> "Minibatch":
+        """With SAIL's prepared rows (``config`` a ``SailConfig``)."""
+        rows = sail_rows_np(self.C.numpy(), self.c.numpy(), self.row_mask.numpy(), self.fixed.numpy(),
+                            self.a_prop.numpy(), config)
+        Cn, cn, keep = (torch.from_numpy(r) for r in rows)
+        return dataclasses.replace(self, sail_Cn=Cn, sail_cn=cn, sail_keep=keep)
 
     def with_density_terms(self) -> "Minibatch":
         u, log_jac = density_terms(self.a_robot)

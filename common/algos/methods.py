@@ -132,6 +132,7 @@ class Method:
         settings = self.actor_settings(progress)
         tau, kappa = settings["tau"], settings["kappa"]
         data, batch_diag = self._prepare(batch)
+        data = self.proposal.prepared(data)
         batch_diag.update(qp_diagnostics(batch, self.cfg.diag_qp_samples))
         B = data.obs.shape[0]
         n_mb = min(self.cfg.minibatches, B)

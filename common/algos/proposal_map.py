@@ -83,7 +83,15 @@ class ProposalMap:
         center is not the implicit SAIL map), for ``center`` to build graphs on."""
         if not self.uses_sail or self.sail_grad == "unrolled":
             return None
-        return sail_step(a_st, mb.C, mb.c, mb.row_mask, kappa, mb.fixed, mb.a_prop, self.sail_config)
+        return sail_step(a_st, mb.C, mb.c, mb.row_mask, kappa, mb.fixed, mb.a_prop, self.sail_config,
+                         rows=mb.sail_rows)
+
+    def prepared(self, data: Minibatch) -> Minibatch:
+        """``data`` with what every solve of its minibatches reuses: SAIL's prepared rows
+        where the center is the implicit SAIL map."""
+        if not self.uses_sail or self.sail_grad == "unrolled":
+            return data
+        return data.with_sail_rows(self.sail_config)
 
     def center(self, mb: Minibatch, a_st: Tensor, kappa: float, step: SailStep | None = None) -> Tensor:
         """Proposal center: SAIL map Pi_kappa(x, a_ST) (Eq. sail_projection) or identity.

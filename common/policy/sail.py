@@ -216,13 +216,32 @@ def sail_project_np(
     return sail_newton(*_kernel_args(a, Cn, cn, keep, kappa), n_newton, damping == "exact")
 
 
+def sail_rows_np(C, c, mask, fixed_mask, fixed_action, config: SailConfig = _DEFAULT):
+    """``_prepare_np``'s rows alone, (Cn, cn, keep): they depend on the data (rows and the
+    human's block), not on a_ST, so the learner prepares a batch's once for all its solves."""
+    human = np.asarray(fixed_action, dtype=np.float64)
+    _, Cn, cn, keep, _, _, _ = _prepare_np(human, C, c, mask, 0.0, None, None, fixed_mask, fixed_action, config)
+    return Cn, cn, keep
+
+
 def sail_implicit_step_np(a_st, C, c, mask, kappa, fixed_mask, fixed_action,
-                          config: SailConfig = _DEFAULT):
+                          config: SailConfig = _DEFAULT, rows=None):
     """The learner's implicit SAIL step at the actors' solution: ``(x_star, H_inv, offset)``
     (see ``sail_center_implicit``). ``x_star`` is ``sail_project_np``'s answer for these
-    inputs (the same prepared rows and kernel, so the same bits)."""
-    a, Cn, cn, keep, kappa, n_newton, damping = _prepare_np(
-        a_st, C, c, mask, kappa, None, None, fixed_mask, fixed_action, config)
+    inputs (the same prepared rows and kernel, so the same bits). ``rows``: ``sail_rows_np``'s
+    answer for these C, c, mask and human block, if already prepared."""
+    if rows is None:
+        a, Cn, cn, keep, kappa, n_newton, damping = _prepare_np(
+            a_st, C, c, mask, kappa, None, None, fixed_mask, fixed_action, config)
+    else:
+        a = np.asarray(a_st, dtype=np.float64)
+        if not np.all(np.isfinite(a)):
+            raise ValueError("sail: a_st contains NaN/Inf")
+        kappa = np.broadcast_to(np.asarray(kappa, dtype=np.float64), (a.shape[0],))
+        if not np.all(np.isfinite(kappa)) or np.any(kappa < 0):
+            raise ValueError(f"sail: kappa must be finite and >= 0, got {kappa}")
+        a = np.where(np.asarray(fixed_mask, dtype=bool), np.asarray(fixed_action, dtype=np.float64), a)
+        (Cn, cn, keep), n_newton, damping = rows, config.n_newton, config.damping
     args = _kernel_args(a, Cn, cn, keep, kappa)
     x_star = sail_newton(*args, n_newton, damping == "exact")
     H_inv, offset = sail_implicit_step(x_star, *args[1:])
@@ -332,13 +351,15 @@ class SailStep:
 
 
 def sail_step(a_st: torch.Tensor, C: torch.Tensor, c: torch.Tensor, mask: torch.Tensor, kappa: float,
-              fixed: torch.Tensor, human: torch.Tensor, config: SailConfig) -> SailStep:
-    """The actors' solve at ``a_st`` and the implicit step there (``sail_implicit_step_np``)."""
+              fixed: torch.Tensor, human: torch.Tensor, config: SailConfig, rows=None) -> SailStep:
+    """The actors' solve at ``a_st`` and the implicit step there (``sail_implicit_step_np``;
+    ``rows``: the prepared rows as tensors, if already prepared)."""
     import torch
 
     x_np, H_inv, offset = sail_implicit_step_np(
         a_st.detach().double().cpu().numpy(), C.detach().cpu().numpy(), c.detach().cpu().numpy(),
-        mask.cpu().numpy(), kappa, fixed.cpu().numpy(), human.detach().cpu().numpy(), config)
+        mask.cpu().numpy(), kappa, fixed.cpu().numpy(), human.detach().cpu().numpy(), config,
+        rows=None if rows is None else tuple(r.cpu().numpy() for r in rows))
     return SailStep(*(torch.as_tensor(v, dtype=torch.float64, device=a_st.device) for v in (x_np, H_inv, offset)))
 
 
