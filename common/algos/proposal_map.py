@@ -169,7 +169,7 @@ class ProposalMap:
         a_ST). The unrolled SAIL gradient keeps the autograd graph of ``center``."""
         if self.uses_sail and self.sail_grad == "unrolled":
             logp = proposal_log_prob(self.center(mb, a_st, kappa), log_std, mb.a_robot, terms=mb.density_terms)
-            return surrogate_chain.surrogates_of_log_density(logp, mb, references, self.clip)
+            return surrogate_chain.surrogates_of_log_density(logp, references, mb.adv, mb.active, self.clip)
         return surrogate_chain.chain_surrogates(a_st, log_std, mb, step, references, self.clip)
 
     def carrier_surrogate(self, mb: Minibatch, a_st: Tensor, log_std: Tensor, kappa: float,

@@ -78,9 +78,7 @@ class SurrogateChain(torch.autograd.Function):
     def forward(ctx, a_st, log_std, fixed, a_prop, a_robot, terms, step, references, adv, active, clip, config):
         center = center_value(a_st, fixed, a_prop, step)
         logp = proposal_log_prob(center, log_std, a_robot, config, terms=terms)
-        refs = torch.stack([logp if r is None else r.to(logp.dtype) for r in references])
-        log_ratios = torch.where(active, logp - refs, torch.zeros_like(logp))
-        values = torch.stack([surrogate_values(r, adv, active, clip) for r in log_ratios])
+        values, log_ratios = surrogates_of_log_density(logp, references, adv, active, clip)
         active_np = active.contiguous().numpy()
         constants = kernels.chain_constants(_numpy(center), _numpy(log_std), _numpy(terms[0]), _numpy(log_ratios),
                                             _numpy(adv), active_np, float(clip), 1.0 - config.center_eps)
@@ -133,12 +131,13 @@ def chain_surrogates(a_st: Tensor, log_std: Tensor, mb, step, references, clip: 
                                 mb.adv, mb.active, float(clip), config)
 
 
-def surrogates_of_log_density(logp: Tensor, mb, references, clip: float) -> tuple[Tensor, Tensor]:
+def surrogates_of_log_density(logp: Tensor, references, adv: Tensor, active: Tensor,
+                              clip: float) -> tuple[Tensor, Tensor]:
     """Surrogates [R, N+1] and log-ratios [R, B, N] from the log-density ``logp`` [B, N] of
     the stored a_prop, as an autograd graph (references as in ``chain_surrogates``)."""
     refs = torch.stack([logp.detach() if r is None else r.to(logp.dtype) for r in references])
-    log_ratios = torch.where(mb.active, logp - refs, torch.zeros_like(logp))
-    values = torch.stack([surrogate_values(r, mb.adv, mb.active, clip) for r in log_ratios])
+    log_ratios = torch.where(active, logp - refs, torch.zeros_like(logp))
+    values = torch.stack([surrogate_values(r, adv, active, clip) for r in log_ratios])
     return values, log_ratios
 
 
@@ -147,4 +146,4 @@ def reference_surrogates(a_st: Tensor, log_std: Tensor, mb, step, references, cl
     """``chain_surrogates`` as one autograd graph: what the closed form is tested against."""
     logp = proposal_log_prob(center_value(a_st, mb.fixed, mb.a_prop, step), log_std, mb.a_robot, config,
                              terms=mb.density_terms)
-    return surrogates_of_log_density(logp, mb, references, clip)
+    return surrogates_of_log_density(logp, references, mb.adv, mb.active, clip)
