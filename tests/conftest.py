@@ -25,8 +25,8 @@ TIERS = {
         "graded_outcomes", "instrument", "kernels_nogil", "mechanism_metrics", "outcome_metrics", "parallel_env",
         "payload_points", "progress", "proposal", "proposal_kernels", "protocol", "qp", "qp_cli",
         "readme", "report", "report_ci", "row_kernels", "safety", "safety_honesty", "safety_kkt",
-        "safety_profiles", "sail", "sail_kernel", "sparse_tree", "stats", "surrogate_chain", "talo", "talo_fast", "tree",
-        "tree_grad_kernels", "tree_kernel", "wire",
+        "safety_profiles", "sail", "sail_kernel", "sparse_tree", "stats", "surrogate_chain", "talo", "talo_fast",
+        "tree", "tree_grad_kernels", "tree_kernel", "wire",
     },
     "sweep": {"algos_learning", "qp_properties", "wire_fuzz"},
     "integration": {

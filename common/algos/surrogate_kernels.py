@@ -18,7 +18,8 @@ ACT = 3   # action dimensions per carrier (common.spec.CARRIER_ACT_DIM; tested e
 
 @njit(cache=True, inline="always")
 def _slope(ratio, adv, clip):
-    """d min(rho A, clip(rho) A) / d rho with autograd's tie rules (``clipped_slope``)."""
+    """d min(rho A, clip(rho) A) / d rho as autograd computes it on ``surrogate_chain.clipped``:
+    ``minimum`` sends a tie half to each side, ``clamp`` passes the gradient on its closed range."""
     x1 = ratio * adv
     x2 = min(max(ratio, 1.0 - clip), 1.0 + clip) * adv
     in_range = 1.0 if (ratio >= 1.0 - clip and ratio <= 1.0 + clip) else 0.0

@@ -136,6 +136,14 @@ def _check_options(n_newton, damping):
 # ----------------------------------------------------------------------------- numpy (the kernels)
 
 
+def _kappa_per_sample(kappa, B: int) -> np.ndarray:
+    """kappa (scalar or [B]) as [B] float64; finite and >= 0, else a ValueError."""
+    kappa = np.broadcast_to(np.asarray(kappa, dtype=np.float64), (B,))
+    if not np.all(np.isfinite(kappa)) or np.any(kappa < 0):
+        raise ValueError(f"sail: kappa must be finite and >= 0, got {kappa}")
+    return kappa
+
+
 def _prepare_np(a_st, C, c, mask, kappa, n_newton, damping, fixed_mask, fixed_action, config,
                 compiled: bool = True):
     """Validation, fixed-block absorption and row normalization shared by the kernel and its
@@ -156,9 +164,7 @@ def _prepare_np(a_st, C, c, mask, kappa, n_newton, damping, fixed_mask, fixed_ac
     for name, arr in (("a_st", a), ("C", C), ("c", c)):
         if not np.all(np.isfinite(arr)):
             raise ValueError(f"sail: {name} contains NaN/Inf")
-    kappa = np.broadcast_to(np.asarray(kappa, dtype=np.float64), (a.shape[0],))
-    if not np.all(np.isfinite(kappa)) or np.any(kappa < 0):
-        raise ValueError(f"sail: kappa must be finite and >= 0, got {kappa}")
+    kappa = _kappa_per_sample(kappa, a.shape[0])
     if fixed_mask is not None and fixed_action is None:
         raise ValueError("sail: fixed_mask needs fixed_action (the human's measured action)")
     if compiled:
@@ -237,9 +243,7 @@ def sail_implicit_step_np(a_st, C, c, mask, kappa, fixed_mask, fixed_action,
         a = np.asarray(a_st, dtype=np.float64)
         if not np.all(np.isfinite(a)):
             raise ValueError("sail: a_st contains NaN/Inf")
-        kappa = np.broadcast_to(np.asarray(kappa, dtype=np.float64), (a.shape[0],))
-        if not np.all(np.isfinite(kappa)) or np.any(kappa < 0):
-            raise ValueError(f"sail: kappa must be finite and >= 0, got {kappa}")
+        kappa = _kappa_per_sample(kappa, a.shape[0])
         a = np.where(np.asarray(fixed_mask, dtype=bool), np.asarray(fixed_action, dtype=np.float64), a)
         (Cn, cn, keep), n_newton, damping = rows, config.n_newton, config.damping
     args = _kernel_args(a, Cn, cn, keep, kappa)

@@ -239,9 +239,10 @@ def tree_st_hvp(q, Vw, Vb, VK, Vbeta, K, beta, obs, margins, t_near, tau, depth)
             for case in range(n_cases):
                 m1, m2 = misses[case, 0], misses[case, 1]
                 lf = _leaf_off_route(right, m1, m2, depth, g1, g2, path, f1, f2)
-                S = 0.0
-                for j in range(depth):
-                    S += f1[j] * dm[path[j]]
+                S = 0.0                                      # sum_j f1_j dm_j (two mismatches: unused)
+                if m2 < 0:
+                    for j in range(depth):
+                        S += f1[j] * dm[path[j]]
                 if m1 < 0:                                   # the hard leaf
                     for j in range(depth):
                         dw1[j] = f1[j]

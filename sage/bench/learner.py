@@ -106,7 +106,8 @@ def _bench_handler(args) -> int:
               f"{out['epochs']} epochs x {out['minibatches']} minibatches")
         for name, cpu in out["update_cpu_s"].items():
             print(f"  {name:10s} thread CPU {cpu:7.3f} s ({out['cpu_ratio_vs_happo'][name]:5.2f}x happo), "
-                  f"{out['samples_per_cpu_s'][name]:7.0f} samples/CPU-s ({out['cpu_us_per_sample'][name]:5.0f} us/sample)   wall {out['update_s'][name]:7.3f} s "
+                  f"{out['samples_per_cpu_s'][name]:7.0f} samples/CPU-s "
+                  f"({out['cpu_us_per_sample'][name]:5.0f} us/sample)   wall {out['update_s'][name]:7.3f} s "
                   f"({out['ratio_vs_happo'][name]:5.2f}x)")
         print(f"  target: {out['target']}: {'met' if out['sage_within_target'] else 'not met'}")
     return 0
