@@ -104,6 +104,60 @@ def test_team_context_is_carrier_order_invariant_and_state_is_used():
         critic(obs, None)
 
 
+@pytest.mark.parametrize("state_dim", [0, 4])
+def test_written_out_value_gradient_matches_autograd(state_dim):
+    """The learner's critic path (``values``, ``value_loss_and_grads``) against
+    ``forward`` under autograd on the same batch: float64 to rounding, and float32 at
+    the paper's widths to float32 rounding (numpy's tanh differs from torch's by an ulp)."""
+    torch.manual_seed(1)
+    for dtype, hidden, latent, tol in ((torch.float64, 16, 8, 1e-12), (torch.float32, 128, 32, 1e-5)):
+        critic = TeamCritic(n_agents=3, obs_dim=5, state_dim=state_dim, hidden=hidden, latent=latent).to(dtype)
+        obs = torch.randn(64, 3, 5, dtype=dtype)
+        s = torch.randn(64, state_dim, dtype=dtype) if state_dim else None
+        target = torch.randn(64, dtype=dtype)
+        v = critic(obs, s)
+        loss = 0.7 * (v - target).pow(2).mean()
+        ref = torch.autograd.grad(loss, list(critic.parameters()))
+        fast_loss, grads = critic.value_loss_and_grads(obs, s, target, 0.7)
+        torch.testing.assert_close(critic.values(obs, s), v.detach(), rtol=tol, atol=tol)
+        torch.testing.assert_close(fast_loss, loss.detach(), rtol=tol, atol=tol)
+        assert len(grads) == len(ref)
+        for (name, p), g, r in zip(critic.named_parameters(), grads, ref):
+            assert g.shape == p.shape, name
+            scale = float(r.abs().max())
+            torch.testing.assert_close(g / scale, r / scale, rtol=tol, atol=tol, msg=name)
+    with pytest.raises(ValueError):
+        critic.values(obs[:, :2], s)
+    if state_dim:
+        with pytest.raises(ValueError):
+            critic.value_loss_and_grads(obs, None, target, 1.0)
+
+
+def test_learner_critic_step_is_the_autograd_step():
+    """``Method._critic_step`` (written-out gradient) moves the critic as the autograd
+    reference step does: same loss, clipping and Adam, from the same start."""
+    from common.algos.methods import make_method
+    from common.algos.adam import Adam
+    cfg = AlgoConfig(critic_hidden=16, encoder_latent=4, max_grad_norm=0.05)   # the clip binds
+    m = make_method("happo", cfg, 5, 15)
+    ref = TeamCritic(3, 5, 0, hidden=16, latent=4)
+    ref.load_state_dict(m.critic.state_dict())
+    opt = Adam(ref.parameters(), lr=cfg.critic_lr, eps=1e-5)
+
+    class MB:
+        obs, state, ret = torch.randn(32, 3, 5), torch.zeros(32, 0), torch.randn(32)
+    for _ in range(3):
+        stats = m._critic_step(MB)
+        loss = cfg.vf_coef * (ref(MB.obs) - MB.ret).pow(2).mean()
+        opt.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(ref.parameters(), cfg.max_grad_norm)
+        opt.step()
+        assert stats["value_loss"] == pytest.approx(float(loss.detach()), rel=1e-5)
+    for (name, p), q in zip(m.critic.named_parameters(), ref.parameters()):
+        torch.testing.assert_close(p, q, rtol=1e-5, atol=1e-6, msg=name)
+
+
 def test_schedules_and_config_validation():
     cfg = AlgoConfig()
     assert tau_schedule(cfg, 0.0) == pytest.approx(cfg.tau_start)

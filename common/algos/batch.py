@@ -136,7 +136,7 @@ def prepare_batch(batch: dict[str, np.ndarray], critic: TeamCritic, value_norm: 
     # values of the visited, last and pre-reset states (normalized -> returns scale)
     with torch.no_grad():
         def values(o: Tensor, s: Tensor) -> np.ndarray:
-            v = critic(o.reshape(-1, n_agents, obs_dim), s.reshape(-1, s.shape[-1]) if use_state else None)
+            v = critic.values(o.reshape(-1, n_agents, obs_dim), s.reshape(-1, s.shape[-1]) if use_state else None)
             return value_norm.denormalize(v).double().numpy()
 
         value = values(obs, state).reshape(T, K)
