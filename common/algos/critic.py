@@ -44,8 +44,8 @@ class TeamCritic(nn.Module):
 
     # The learner's path: the same network written out layer by layer, its backward by
     # hand. ``forward`` (autograd) stays the reference: tests/test_algos_critic.py checks
-    # values and gradients against it. Two things pay (docs/scaling.md, the critic fast
-    # path): tanh through numpy (torch's float32 tanh costs ~7x numpy's on this CPU; the
+    # values and gradients against it. Two things pay (docs/scaling.md, "the critic
+    # written out"): tanh through numpy (torch's float32 tanh costs ~7x numpy's on this CPU; the
     # two differ by at most one ulp) and no graph bookkeeping; the backward also skips
     # the gradient of the observations' slice of the value net's input.
 
@@ -108,7 +108,9 @@ class TeamCritic(nn.Module):
 
 
 def _tanh_(x: Tensor) -> Tensor:
-    """tanh in place on a contiguous CPU tensor, by numpy's (see the note above)."""
+    """tanh in place, by numpy's on a CPU tensor (see the note above)."""
+    if x.device.type != "cpu":
+        return x.tanh_()
     a = x.numpy()
     np.tanh(a, out=a)
     return x
