@@ -9,3 +9,6 @@ def test_bench_learner_reports_the_cost_per_sample():
     for name in ("happo", "sage"):
         assert out["cpu_us_per_sample"][name] > 0
         assert out["cpu_us_per_sample"][name] * out["samples_per_cpu_s"][name] == pytest.approx(1e6)
+    cs = out["critic_step"]   # the same run's A/B of the critic step, on the bench's minibatch
+    assert cs["minibatch"] == 8 // 2 and cs["autograd_us"] > 0 and cs["written_us"] > 0
+    assert cs["written_over_autograd"] > 0

@@ -77,7 +77,60 @@ def bench_learner(T: int = 64, K: int = 32, obs_dim: int | None = None, rows: in
         "sage_within_target": (update_cpu_s["sage"] / update_cpu_s["happo"] <= TARGET_RATIO)
         if "sage" in update_cpu_s else None,
         "w_gap": {k: d.get("w_gap") for k, d in last_diag.items()},
+        "critic_step": critic_step_ab(learners["happo"][0], T * K // min(cfg.minibatches, T * K)),
     }
+
+
+def critic_step_ab(method, minibatch: int, blocks: int = 20, steps: int = 10) -> dict:
+    """The learner's critic step (written-out gradient) against the autograd reference
+    step (``TeamCritic.forward``, ``backward``), each with the same clip and Adam, on one
+    random minibatch of ``minibatch`` samples: thread CPU per step in alternating blocks of ``steps``,
+    and the median of the per-block-pair ratios (what a change in the machine's speed
+    moves least). Runs on a copy of the critic; ``method`` is untouched."""
+    import copy
+
+    from torch import nn
+
+    from common.algos.adam import Adam
+
+    cfg = method.cfg
+    critic = copy.deepcopy(method.critic)
+    opt = Adam(critic.parameters(), lr=cfg.critic_lr, eps=1e-5)
+    B = max(1, int(minibatch))
+    gen = torch.Generator().manual_seed(cfg.seed)
+    obs = torch.randn(B, method.n_agents, method.obs_dim, generator=gen)
+    state = torch.randn(B, critic.state_dim, generator=gen) if critic.state_dim else None
+    target = torch.randn(B, generator=gen)
+
+    def autograd_step():
+        loss = cfg.vf_coef * (critic(obs, state) - target).pow(2).mean()
+        opt.zero_grad()
+        loss.backward()
+        nn.utils.clip_grad_norm_(critic.parameters(), cfg.max_grad_norm)
+        opt.step()
+
+    def written_step():
+        _, grads = critic.value_loss_and_grads(obs, state, target, cfg.vf_coef)
+        for p, g in zip(critic.parameters(), grads):
+            p.grad = g
+        nn.utils.clip_grad_norm_(critic.parameters(), cfg.max_grad_norm)
+        opt.step()
+
+    cpu = {"autograd": [], "written": []}
+    steps_of = {"autograd": autograd_step, "written": written_step}
+    for f in steps_of.values():
+        f()                                                   # warm-up
+    for b in range(blocks):
+        for name in (("autograd", "written") if b % 2 == 0 else ("written", "autograd")):
+            c0 = time.thread_time()
+            for _ in range(steps):
+                steps_of[name]()
+            cpu[name].append((time.thread_time() - c0) / steps)
+    ratios = [w / a for w, a in zip(cpu["written"], cpu["autograd"]) if a > 0]
+    return {"minibatch": B, "blocks": blocks,
+            "autograd_us": 1e6 * statistics.median(cpu["autograd"]),
+            "written_us": 1e6 * statistics.median(cpu["written"]),
+            "written_over_autograd": statistics.median(ratios) if ratios else None}
 
 
 # ----------------------------------------------------------------- command line
@@ -110,4 +163,7 @@ def _bench_handler(args) -> int:
                   f"({out['cpu_us_per_sample'][name]:5.0f} us/sample)   wall {out['update_s'][name]:7.3f} s "
                   f"({out['ratio_vs_happo'][name]:5.2f}x)")
         print(f"  target: {out['target']}: {'met' if out['sage_within_target'] else 'not met'}")
+        cs = out["critic_step"]
+        print(f"  critic step ({cs['minibatch']} samples): written-out {cs['written_us']:.0f} us, "
+              f"autograd {cs['autograd_us']:.0f} us, ratio {cs['written_over_autograd']:.2f} (median of {cs['blocks']} blocks)")
     return 0
