@@ -54,12 +54,12 @@ class TeamCritic(nn.Module):
         v0, v2, v4 = self.value[0], self.value[2], self.value[4]
         return [(m.weight.detach(), m.bias.detach()) for m in (e0, e2, v0, v2, v4)]
 
-    def _forward_parts(self, obs: Tensor, state: Tensor | None) -> list[Tensor]:
+    def _forward_parts(self, obs: Tensor, state: Tensor | None, layers) -> list[Tensor]:
         """[x0, a1, a2, inp, h1, h2, v]: the encoder's input and activations over all
         B*N carrier rows, the value net's input ``[o, z, s]``, activations and ``v [B]``."""
         if obs.dim() != 3 or obs.shape[1:] != (self.n_agents, self.obs_dim):
             raise ValueError(f"critic expects obs [B,{self.n_agents},{self.obs_dim}], got {tuple(obs.shape)}")
-        (w1, b1), (w2, b2), (u1, c1), (u2, c2), (u3, c3) = self._layers()
+        (w1, b1), (w2, b2), (u1, c1), (u2, c2), (u3, c3) = layers
         B = obs.shape[0]
         x0 = obs.detach().reshape(B * self.n_agents, self.obs_dim)
         a1 = _tanh_(torch.addmm(b1, x0, w1.t()))
@@ -79,15 +79,16 @@ class TeamCritic(nn.Module):
     @torch.no_grad()
     def values(self, obs: Tensor, state: Tensor | None = None) -> Tensor:
         """``forward``'s values without a graph (batch preparation)."""
-        return self._forward_parts(obs, state)[-1]
+        return self._forward_parts(obs, state, self._layers())[-1]
 
     @torch.no_grad()
     def value_loss_and_grads(self, obs: Tensor, state: Tensor | None, target: Tensor,
                              coef: float) -> tuple[Tensor, list[Tensor]]:
         """``coef * mean((V - target)^2)`` and its gradient for each of ``parameters()``
         (in that order), by the chain rule through the layers above."""
-        x0, a1, a2, inp, h1, h2, v = self._forward_parts(obs, state)
-        (_, _), (w2, _), (u1, _), (u2, _), (u3, _) = self._layers()
+        layers = self._layers()
+        x0, a1, a2, inp, h1, h2, v = self._forward_parts(obs, state, layers)
+        (_, _), (w2, _), (u1, _), (u2, _), (u3, _) = layers
         B, N = v.shape[0], self.n_agents
         r = v - target
         loss = coef * r.pow(2).mean()
@@ -105,6 +106,25 @@ class TeamCritic(nn.Module):
         g = torch.ops.aten.tanh_backward(g.mm(w2), a1)
         g_w1, g_b1 = g.t().mm(x0), g.sum(0)
         return loss, [g_w1, g_b1, g_w2, g_b2, g_u1, g_c1, g_u2, g_c2, g_u3, g_c3]
+
+
+def value_step(critic: TeamCritic, opt, obs: Tensor, state: Tensor | None, target: Tensor, coef: float,
+               max_grad_norm: float, by_autograd: bool = False) -> float:
+    """One critic step of ``opt`` on ``coef * mean((V - target)^2)``, the gradient clipped
+    to ``max_grad_norm``; returns the loss. The learner's gradient is the written-out one;
+    ``by_autograd``: ``forward``'s under autograd, the reference (``sage bench learner``
+    times the two)."""
+    if by_autograd:
+        loss = coef * (critic(obs, state) - target).pow(2).mean()
+        opt.zero_grad()
+        loss.backward()
+    else:
+        loss, grads = critic.value_loss_and_grads(obs, state, target, coef)
+        for p, g in zip(critic.parameters(), grads):
+            p.grad = g
+    nn.utils.clip_grad_norm_(critic.parameters(), max_grad_norm)
+    opt.step()
+    return float(loss.detach())
 
 
 def _tanh_(x: Tensor) -> Tensor:

@@ -32,13 +32,13 @@ import json
 
 import numpy as np
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from common.algos import diagnostics
 from common.algos.adam import Adam
 from common.algos.batch import Minibatch, prepare_batch
 from common.algos.config import AlgoConfig, kappa_schedule, tau_schedule
-from common.algos.critic import TeamCritic, ValueNormalizer
+from common.algos.critic import TeamCritic, ValueNormalizer, value_step
 from common.algos.diagnostics import gap_summary, logratio_at_start, qp_diagnostics, snapshot
 from common.algos.joint import joint_step
 from common.algos.proposal_map import ProposalMap
@@ -192,14 +192,9 @@ class Method:
         return prepare_batch(batch, self.critic, self.value_norm, self.cfg, self.n_agents, self.obs_dim)
 
     def _critic_step(self, mb: Minibatch) -> dict[str, float]:
-        # the written-out gradient of TeamCritic.forward's loss (checked against autograd's)
-        loss, grads = self.critic.value_loss_and_grads(
-            mb.obs, mb.state if self.critic.state_dim else None, mb.ret, self.cfg.vf_coef)
-        for p, g in zip(self.critic.parameters(), grads):
-            p.grad = g
-        nn.utils.clip_grad_norm_(self.critic.parameters(), self.cfg.max_grad_norm)
-        self.critic_opt.step()
-        return {"value_loss": float(loss.detach())}
+        loss = value_step(self.critic, self.critic_opt, mb.obs, mb.state if self.critic.state_dim else None,
+                          mb.ret, self.cfg.vf_coef, self.cfg.max_grad_norm)
+        return {"value_loss": loss}
 
     # ------------------------------------------------------------------ checkpoints
 

@@ -89,9 +89,8 @@ def critic_step_ab(method, minibatch: int, blocks: int = 20, steps: int = 10) ->
     moves least). Runs on a copy of the critic; ``method`` is untouched."""
     import copy
 
-    from torch import nn
-
     from common.algos.adam import Adam
+    from common.algos.critic import value_step
 
     cfg = method.cfg
     critic = copy.deepcopy(method.critic)
@@ -102,22 +101,11 @@ def critic_step_ab(method, minibatch: int, blocks: int = 20, steps: int = 10) ->
     state = torch.randn(B, critic.state_dim, generator=gen) if critic.state_dim else None
     target = torch.randn(B, generator=gen)
 
-    def autograd_step():
-        loss = cfg.vf_coef * (critic(obs, state) - target).pow(2).mean()
-        opt.zero_grad()
-        loss.backward()
-        nn.utils.clip_grad_norm_(critic.parameters(), cfg.max_grad_norm)
-        opt.step()
-
-    def written_step():
-        _, grads = critic.value_loss_and_grads(obs, state, target, cfg.vf_coef)
-        for p, g in zip(critic.parameters(), grads):
-            p.grad = g
-        nn.utils.clip_grad_norm_(critic.parameters(), cfg.max_grad_norm)
-        opt.step()
+    def step(by_autograd: bool):
+        return lambda: value_step(critic, opt, obs, state, target, cfg.vf_coef, cfg.max_grad_norm, by_autograd)
 
     cpu = {"autograd": [], "written": []}
-    steps_of = {"autograd": autograd_step, "written": written_step}
+    steps_of = {"autograd": step(True), "written": step(False)}
     for f in steps_of.values():
         f()                                                   # warm-up
     for b in range(blocks):
