@@ -99,6 +99,7 @@ def test_talo_gap_matches_the_autograd_chain(name, monkeypatch):
     cfg = AlgoConfig(seed=3)
     task = BanditTask(obs_dim=16, seed=3, n_rows=12, human_rate=0.1)
     method = make_method(name, cfg, 16, 48)
+    method.proposal.closed_form = False   # the graph with the chain as one Function vs all of it as ops
     batch = collect(method, task, 16, 8, 0.5, np.random.default_rng(3))
     data, _ = method._prepare(batch)
     lagged = data.logp_old + 0.2 * torch.randn(data.logp_old.shape, generator=torch.Generator().manual_seed(1),
@@ -129,19 +130,20 @@ def test_talo_gap_matches_the_autograd_chain(name, monkeypatch):
 def test_an_update_steps_where_the_autograd_chain_steps(name, monkeypatch):
     """Two whole updates (every minibatch step, HAPPO's per-carrier surrogates with the M
     factor, the diagnostics and the A/B) from the same state: the same parameters and
-    diagnostics to float32 rounding, closed-form chain vs the autograd graph."""
+    diagnostics to float32 rounding, the learner's closed-form path vs the autograd graph."""
     task = BanditTask(obs_dim=16, seed=4, n_rows=12, human_rate=0.1)
 
-    def run():
+    def run(closed_form):
         method = make_method(name, AlgoConfig(seed=4), 16, 48)
+        method.proposal.closed_form = closed_form
         rng = np.random.default_rng(4)
         diags = [method.update(collect(method, task, 16, 8, p, rng), p) for p in (0.2, 0.6)]
         return torch.cat([p.detach().double().reshape(-1) for p in method.actor_params]), diags[-1]
 
-    fast_params, fast = run()
+    fast_params, fast = run(closed_form=True)      # the learner's path: TALO's gap in closed form too
     with monkeypatch.context() as patch:
         patch.setattr(surrogate_chain, "chain_surrogates", reference_surrogates)
-        ref_params, ref = run()
+        ref_params, ref = run(closed_form=False)
     assert _rel(fast_params, ref_params) < 1e-5
     for key in ("policy_loss", "approx_kl", "w_gap_mean", "ab_w_talo"):
         if key in ref:

@@ -56,6 +56,7 @@ def prepared_double(name: str, seed: int = 1, obs: int = 6):
     task = BanditTask(obs_dim=obs, seed=seed, n_rows=10, row_frac=0.5, human_rate=0.2)
     batch = collect(m, task, 6, 8, 0.5, np.random.default_rng(seed))
     m.policy.double()
+    m.proposal.closed_form = False     # these tests are about talo_gap on the autograd graph
     mb, _ = m._prepare(batch)
     return m, mb
 

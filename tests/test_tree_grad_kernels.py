@@ -87,6 +87,7 @@ def test_talo_gap_matches_the_reference_path(name, monkeypatch):
     cfg = AlgoConfig(seed=3)
     task = BanditTask(obs_dim=16, seed=3, n_rows=12, human_rate=0.1)
     method = make_method(name, cfg, 16, 48)
+    method.proposal.closed_form = False   # the graph with TreeCore vs the tree as ops
     batch = collect(method, task, 16, 8, 0.5, np.random.default_rng(3))
     data, _ = method._prepare(batch)
     mb = dataclasses.replace(data, logp_start=None)

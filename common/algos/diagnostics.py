@@ -53,8 +53,8 @@ def gap_diagnostics(proposal: ProposalMap, mb: Minibatch, tau: float, kappa: flo
     reuses: the forward (saves a SAIL solve) and its first carrier's surrogate."""
     a_st, step, behaviour, start = proposal.start_point(mb, tau, kappa)
     g_ind, g_team, w, _ = proposal.gap(a_st, start, with_hvp=False)
-    return gap_stats(g_ind, g_team, w), \
-        StartPoint(a_st.detach().clone(), step, behaviour, g_ind if start is behaviour else None)
+    g_behaviour = g_ind if start is behaviour else proposal.individual_gradient(behaviour)
+    return gap_stats(g_ind, g_team, w), StartPoint(a_st.detach().clone(), step, behaviour, g_behaviour)
 
 
 def logratio_at_start(data: Minibatch) -> float:

@@ -17,6 +17,8 @@ from torch import Tensor
 
 from common.algos import surrogate_chain
 from common.algos.batch import Minibatch
+from common.algos.gap_closed_form import TREE_PARAMETERS, Layout, Taped, cotangent_sets, gradient, \
+    talo_gap_closed_form
 from common.algos.surrogate_chain import clipped, surrogate_values
 from common.algos.talo import Through, talo_gap
 from common.policy.proposal import proposal_entropy, proposal_log_prob
@@ -29,8 +31,10 @@ from common.spec import CARRIER_ACT_DIM
 class Surrogates:
     """Eq. (ppo_surrogates) on one forward, with the ratio against one reference policy."""
     log_ratio: Tensor   # [B, N], 0 on human blocks
-    L_ind: list[Tensor]   # [L_i], each with the forward's graph
+    L_ind: list[Tensor]   # [L_i], each with the forward's graph (none where ``taped``)
     L_team: Tensor
+    taped: Taped | None = None   # the forward's tapes, where its derivatives are in closed form
+    reference: int = 0           # which of the forward's references these surrogates divide by
 
 
 @dataclass
@@ -47,14 +51,22 @@ class StartPoint:
 
 class ProposalMap:
     """a_ST -> center -> log pi(a_prop) for one team policy; ``uses_sail`` picks the
-    SAIL center (``sail_grad``: "implicit" or "unrolled" gradient) over the identity."""
+    SAIL center (``sail_grad``: "implicit" or "unrolled" gradient) over the identity.
+    ``closed_form``: TALO's gap from the written-out derivatives (common/algos/
+    gap_closed_form.py) where the center allows it (not the unrolled SAIL gradient); False:
+    autograd on the graph, the reference the closed form is tested against."""
 
-    def __init__(self, policy: TeamPolicy, uses_sail: bool, sail_grad: str, clip: float):
+    def __init__(self, policy: TeamPolicy, uses_sail: bool, sail_grad: str, clip: float,
+                 closed_form: bool = True):
         self.policy, self.uses_sail, self.sail_grad, self.clip = policy, uses_sail, sail_grad, clip
         self.trees = list(policy.trees)
         self.groups = [list(t.parameters()) for t in self.trees]   # theta_i, carrier i's parameters
         self.params = [p for g in self.groups for p in g]           # theta, the flat actor vector's order
         self.n_agents = len(self.trees)
+        if any(tuple(n for n, _ in t.named_parameters()) != TREE_PARAMETERS for t in self.trees):
+            raise ValueError(f"proposal map: each tree's parameters must be {TREE_PARAMETERS}")
+        self.closed_form = closed_form and not (uses_sail and sail_grad == "unrolled")
+        self.layout = Layout(self.groups)
         # the learner's SAIL forward must equal the actors' (common/policy/rollout.py defaults)
         self.sail_config = SailConfig()
 
@@ -150,14 +162,25 @@ class ProposalMap:
         diagnostics). Where the two ratios agree bitwise on the minibatch (on-policy data:
         the actors' log-density is the learner's), ``start is behaviour``, and whatever is
         computed on one serves the other. From a_ST on, the surrogates and their first and
-        second derivatives are the closed form of common/algos/surrogate_chain.py.
+        second derivatives are the closed form of common/algos/surrogate_chain.py; with
+        ``closed_form`` the trees' too, and the forward keeps tapes instead of a graph.
         Returns (a_ST, SAIL step or None, behaviour, start)."""
-        a_st = self.tree_actions(mb, tau, grad=True)
-        step = self.sail_step(mb, a_st, kappa)
-        values, log_ratios = self.surrogates_at(mb, a_st, self.log_std(), kappa, step,
-                                                (mb.logp_old, mb.logp_start))
+        references = (mb.logp_old, mb.logp_start)
+        if self.closed_form:
+            forest = self.policy.taped(mb.obs, tau)
+            a_st = forest.action
+            step = self.sail_step(mb, a_st, kappa)
+            values, log_ratios, chain = surrogate_chain.chain_surrogates_taped(
+                a_st, self.log_std(), mb, step, references, self.clip)
+            taped = Taped(forest, chain)
+        else:
+            a_st = self.tree_actions(mb, tau, grad=True)
+            step = self.sail_step(mb, a_st, kappa)
+            values, log_ratios = self.surrogates_at(mb, a_st, self.log_std(), kappa, step, references)
+            taped = None
         N = self.n_agents
-        behaviour, start = (Surrogates(r, list(v[:N].unbind(0)), v[N]) for r, v in zip(log_ratios, values))
+        behaviour, start = (Surrogates(r, list(v[:N].unbind(0)), v[N], taped, k)
+                            for k, (r, v) in enumerate(zip(log_ratios, values)))
         if torch.equal(log_ratios[1], log_ratios[0]):
             return a_st, step, behaviour, behaviour
         return a_st, step, behaviour, start
@@ -183,6 +206,15 @@ class ProposalMap:
     def gap(self, a_st: Tensor, s: Surrogates, with_hvp: bool):
         """Eq. (talo_gap) on surrogates ``s`` built on the forward that produced ``a_st``:
         (g_ind, g_team, W_gap, grad W or None). Without SAIL each L_i depends on tree i
-        alone (separable)."""
+        alone (separable). In closed form where ``s`` holds its forward's tapes."""
+        if s.taped is not None:
+            return talo_gap_closed_form(s.taped, s.reference, self.layout, with_hvp)
         return talo_gap(s.L_ind, s.L_team, self.groups, separable=not self.uses_sail,
                         with_hvp=with_hvp, through=self.through(a_st))
+
+    def individual_gradient(self, s: Surrogates) -> Tensor | None:
+        """g_ind = [grad_{theta_i} L_i]_i of taped surrogates ``s`` (None without tapes)."""
+        if s.taped is None:
+            return None
+        R, _, N = s.taped.chain.constants[6].shape
+        return gradient(s.taped, cotangent_sets(R, N, s.reference, "ind"), self.layout)

@@ -33,6 +33,8 @@ before) on learner minibatches of every method that uses it, and TALO's whole ga
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -67,6 +69,41 @@ def _numpy(x: Tensor):
     return x.detach().double().contiguous().numpy()
 
 
+@dataclass(frozen=True)
+class ChainTape:
+    """What the chain's derivatives read at one forward (``chain_forward``): the kernels'
+    per-sample constants, the active robot blocks, SAIL's H^{-1} (empty: identity center)
+    and the robot columns. ``vjp`` and ``hvp`` take output cotangent sets ``gbars``
+    [G, R, N+1] (G = 1: one for every column; G = N: set j for carrier j's columns)."""
+    constants: tuple
+    active: np.ndarray
+    H_inv: np.ndarray
+    robot: np.ndarray
+
+    def vjp(self, gbars: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Cotangents of (a_ST [B,D], log_std [D])."""
+        _, _, _, g, h, _, w_ind, w_team = self.constants
+        return kernels.chain_vjp(gbars, g, h, w_ind, w_team, self.H_inv, self.robot)
+
+    def hvp(self, gbars: np.ndarray, v_a: np.ndarray, v_s: np.ndarray):
+        """``vjp``'s derivative along (v_a [B,D], v_s [D]): (d/dgbars, Hessian times v in a_ST, in log_std)."""
+        return kernels.chain_hvp(gbars, v_a, v_s, *self.constants, self.active, self.H_inv, self.robot)
+
+
+def chain_forward(a_st, log_std, fixed, a_prop, a_robot, terms, step, references, adv, active, clip, config):
+    """Surrogates [R, N+1], log-ratios [R, B, N] (the reference's own expressions, so the same
+    bits) and the ``ChainTape`` of their derivatives; no autograd graph."""
+    with torch.no_grad():
+        center = center_value(a_st, fixed, a_prop, step)
+        logp = proposal_log_prob(center, log_std, a_robot, config, terms=terms)
+        values, log_ratios = surrogates_of_log_density(logp, references, adv, active, clip)
+    active_np = active.contiguous().numpy()
+    constants = kernels.chain_constants(_numpy(center), _numpy(log_std), _numpy(terms[0]), _numpy(log_ratios),
+                                        _numpy(adv), active_np, float(clip), 1.0 - config.center_eps)
+    H_inv = np.empty((0, 0, 0)) if step is None else _numpy(step.H_inv)
+    return values, log_ratios, ChainTape(constants, active_np, H_inv, (~fixed).contiguous().numpy())
+
+
 class SurrogateChain(torch.autograd.Function):
     """(a_ST [B,D], log_std [D]) -> surrogates [R, N+1] = [L_1..L_N, L_team] per reference
     policy, and the log-ratios [R, B, N] (not differentiable). ``references``: R log-densities
@@ -76,14 +113,8 @@ class SurrogateChain(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, a_st, log_std, fixed, a_prop, a_robot, terms, step, references, adv, active, clip, config):
-        center = center_value(a_st, fixed, a_prop, step)
-        logp = proposal_log_prob(center, log_std, a_robot, config, terms=terms)
-        values, log_ratios = surrogates_of_log_density(logp, references, adv, active, clip)
-        active_np = active.contiguous().numpy()
-        constants = kernels.chain_constants(_numpy(center), _numpy(log_std), _numpy(terms[0]), _numpy(log_ratios),
-                                            _numpy(adv), active_np, float(clip), 1.0 - config.center_eps)
-        H_inv = np.empty((0, 0, 0)) if step is None else _numpy(step.H_inv)
-        ctx.chain = (constants, active_np, H_inv, (~fixed).contiguous().numpy())
+        values, log_ratios, ctx.tape = chain_forward(a_st, log_std, fixed, a_prop, a_robot, terms, step,
+                                                     references, adv, active, clip, config)
         ctx.save_for_backward(a_st, log_std)
         ctx.mark_non_differentiable(log_ratios)
         return values, log_ratios
@@ -92,32 +123,30 @@ class SurrogateChain(torch.autograd.Function):
     def backward(ctx, gbar, _):
         if gbar is None:
             return (None,) * 12
-        return (*ChainVJP.apply(gbar, *ctx.saved_tensors, ctx.chain),) + (None,) * 10
+        return (*ChainVJP.apply(gbar, *ctx.saved_tensors, ctx.tape),) + (None,) * 10
 
 
 class ChainVJP(torch.autograd.Function):
     """The cotangents of (a_ST, log_std) for output cotangents gbar [R, N+1]; its backward
     along a direction (V_a [B,D], V_s [D]) is the double backward: d/dgbar = the directional
     derivative of the surrogates, d/d(a_ST, log_std) = the chain's Hessian times V. a_ST and
-    log_std are inputs (the kernels read them through ``chain``) so that autograd routes
+    log_std are inputs (the kernels read them through ``tape``) so that autograd routes
     those terms to them."""
 
     @staticmethod
-    def forward(ctx, gbar, a_st, log_std, chain):
-        (_, _, _, g, h, _, w_ind, w_team), _, H_inv, robot = chain
-        ctx.chain, ctx.gbar, ctx.dtypes = chain, _numpy(gbar), (gbar.dtype, a_st.dtype, log_std.dtype)
-        a_bar, s_bar = kernels.chain_vjp(ctx.gbar, g, h, w_ind, w_team, H_inv, robot)
+    def forward(ctx, gbar, a_st, log_std, tape):
+        ctx.tape, ctx.gbars, ctx.dtypes = tape, _numpy(gbar)[None], (gbar.dtype, a_st.dtype, log_std.dtype)
+        a_bar, s_bar = tape.vjp(ctx.gbars)
         return torch.from_numpy(a_bar).to(a_st.dtype), torch.from_numpy(s_bar).to(log_std.dtype)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, v_a, v_s):
-        constants, active, H_inv, robot = ctx.chain
-        B, D = constants[3].shape
+        B, D = ctx.tape.constants[3].shape
         v_a = np.zeros((B, D)) if v_a is None else _numpy(v_a)
         v_s = np.zeros(D) if v_s is None else _numpy(v_s)
-        dgbar, h_a, h_s = kernels.chain_hvp(ctx.gbar, v_a, v_s, *constants, active, H_inv, robot)
-        return (*(torch.from_numpy(x).to(dt) for x, dt in zip((dgbar, h_a, h_s), ctx.dtypes)), None)
+        dgbar, h_a, h_s = ctx.tape.hvp(ctx.gbars, v_a, v_s)
+        return (*(torch.from_numpy(x).to(dt) for x, dt in zip((dgbar[0], h_a, h_s), ctx.dtypes)), None)
 
 
 def chain_surrogates(a_st: Tensor, log_std: Tensor, mb, step, references, clip: float,
@@ -129,6 +158,16 @@ def chain_surrogates(a_st: Tensor, log_std: Tensor, mb, step, references, clip: 
     terms = mb.density_terms or density_terms(a_robot, config)
     return SurrogateChain.apply(a_st, log_std, mb.fixed, mb.a_prop, a_robot, terms, step, tuple(references),
                                 mb.adv, mb.active, float(clip), config)
+
+
+def chain_surrogates_taped(a_st: Tensor, log_std: Tensor, mb, step, references, clip: float,
+                           config: ProposalConfig = ProposalConfig()) -> tuple[Tensor, Tensor, ChainTape]:
+    """``chain_surrogates``' values without a graph, and the ``ChainTape`` their closed-form
+    derivatives read (common/algos/gap_closed_form.py)."""
+    a_robot = mb.a_robot
+    terms = mb.density_terms or density_terms(a_robot, config)
+    return chain_forward(a_st.detach(), log_std.detach(), mb.fixed, mb.a_prop, a_robot, terms, step,
+                         tuple(references), mb.adv, mb.active, float(clip), config)
 
 
 def surrogates_of_log_density(logp: Tensor, references, adv: Tensor, active: Tensor,

@@ -75,82 +75,105 @@ def _weight(gbar, w_ind, w_team, b, j):
 
 
 @njit(cache=True, inline="always")
-def _from_center(cbar, H_inv, robot, b, out):
-    """out[b] = robot * J^T cbar (J = H^{-1}, or the identity when H_inv is empty)."""
+def _from_center(cbar, H_inv, robot, b, out, lo, hi):
+    """out[b, lo:hi] += (robot * J^T cbar)[lo:hi] (J = H^{-1}, or the identity when H_inv is empty)."""
     D = cbar.shape[0]
-    for k in range(D):
+    for k in range(lo, hi):
         if H_inv.shape[0] == 0:
             s = cbar[k]
         else:
             s = 0.0
             for i in range(D):
                 s += H_inv[b, i, k] * cbar[i]
-        out[b, k] = s if robot[b, k] else 0.0
+        if robot[b, k]:
+            out[b, k] += s
+
+
+@njit(cache=True, inline="always")
+def _block(G, gi, D):
+    """The output columns cotangent set ``gi`` of ``G`` serves: all of them (G = 1) or carrier gi's."""
+    return (0, D) if G == 1 else (ACT * gi, ACT * (gi + 1))
 
 
 @njit(cache=True, nogil=True)
-def chain_vjp(gbar, g, h, w_ind, w_team, H_inv, robot):
-    """The cotangents of a_ST [B,D] and log_std [D] for output cotangents gbar [R, N+1]."""
+def chain_vjp(gbars, g, h, w_ind, w_team, H_inv, robot):
+    """The cotangents of a_ST [B,D] and log_std [D] for output cotangents ``gbars`` [G, R, N+1]:
+    G = 1, one set for every column; G = N, set j for carrier j's columns only (the blocks
+    [grad_{z_j} L^(j)]_j of TALO's d with L^(j) = sum gbars[j] . L, in one pass)."""
     B, D = g.shape
-    a_bar = np.empty((B, D))
+    G = gbars.shape[0]
+    a_bar = np.zeros((B, D))
     s_bar = np.zeros(D)
     cbar = np.empty(D)
     for b in range(B):
-        for k in range(D):
-            w = _weight(gbar, w_ind, w_team, b, k // ACT)
-            cbar[k] = w * g[b, k]
-            s_bar[k] += w * h[b, k]
-        _from_center(cbar, H_inv, robot, b, a_bar)
+        for gi in range(G):
+            lo, hi = _block(G, gi, D)
+            for k in range(D):
+                w = _weight(gbars[gi], w_ind, w_team, b, k // ACT)
+                cbar[k] = w * g[b, k]
+                if k >= lo and k < hi:
+                    s_bar[k] += w * h[b, k]
+            _from_center(cbar, H_inv, robot, b, a_bar, lo, hi)
     return a_bar, s_bar
 
 
 @njit(cache=True, nogil=True)
-def chain_hvp(gbar, v_a, v_s, mu1, mu2, z, g, h, inv_sigma, w_ind, w_team, active, H_inv, robot):
-    """``chain_vjp``'s derivative along (v_a [B,D], v_s [D]): d/dgbar [R, N+1] (the
-    surrogates' directional derivatives) and the chain's Hessian times v in a_ST [B,D]
-    and log_std [D]."""
+def chain_hvp(gbars, v_a, v_s, mu1, mu2, z, g, h, inv_sigma, w_ind, w_team, active, H_inv, robot):
+    """``chain_vjp``'s derivative along (v_a [B,D], v_s [D]) (with G = N, set j sees v only on
+    carrier j's columns, as its block of ``chain_vjp`` reads): d/dgbars [G, R, N+1] (the
+    surrogates' directional derivatives) and the chain's Hessian times v in a_ST [B,D] and
+    log_std [D], summed over the sets."""
     B, D = g.shape
+    G = gbars.shape[0]
     R, _, N = w_ind.shape
-    dgbar = np.zeros((R, N + 1))
-    h_a = np.empty((B, D))
+    dgbar = np.zeros((G, R, N + 1))
+    h_a = np.zeros((B, D))
     h_s = np.zeros(D)
     dc = np.empty(D)
+    va = np.empty(D)
+    vs = np.empty(D)
     dlogp = np.empty(N)
     cbar = np.empty(D)
     for b in range(B):
-        for k in range(D):                       # d c = J (robot * v_a)
-            if H_inv.shape[0] == 0:
-                dc[k] = v_a[b, k] if robot[b, k] else 0.0
-            else:
-                s = 0.0
-                for i in range(D):
-                    if robot[b, i]:
-                        s += H_inv[b, k, i] * v_a[b, i]
-                dc[k] = s
-        dteam = 0.0
-        for j in range(N):
-            s = 0.0
-            for k in range(ACT * j, ACT * (j + 1)):
-                s += g[b, k] * dc[k] + h[b, k] * v_s[k]
-            dlogp[j] = s
-            if active[b, j]:
-                dteam += s
-        for r in range(R):
+        for gi in range(G):
+            gbar = gbars[gi]
+            lo, hi = _block(G, gi, D)
+            for k in range(D):
+                inside = k >= lo and k < hi
+                va[k] = v_a[b, k] if (inside and robot[b, k]) else 0.0
+                vs[k] = v_s[k] if inside else 0.0
+            for k in range(D):                       # d c = J (robot * v_a)
+                if H_inv.shape[0] == 0:
+                    dc[k] = va[k]
+                else:
+                    s = 0.0
+                    for i in range(D):
+                        s += H_inv[b, k, i] * va[i]
+                    dc[k] = s
+            dteam = 0.0
             for j in range(N):
-                dgbar[r, j] += w_ind[r, b, j] * dlogp[j]
-                dgbar[r, N] += w_team[r, b, j] * dlogp[j]
-        for j in range(N):
-            # d of the slopes: d(coef rho) = coef rho d log_ratio (coef piecewise constant)
-            dw = 0.0
+                s = 0.0
+                for k in range(ACT * j, ACT * (j + 1)):
+                    s += g[b, k] * dc[k] + h[b, k] * vs[k]
+                dlogp[j] = s
+                if active[b, j]:
+                    dteam += s
             for r in range(R):
-                dw += gbar[r, j] * w_ind[r, b, j] * dlogp[j] + gbar[r, N] * w_team[r, b, j] * dteam
-            w = _weight(gbar, w_ind, w_team, b, j)
-            for k in range(ACT * j, ACT * (j + 1)):
-                s_k = z[b, k] * inv_sigma[k]
-                ds_k = -mu1[b, k] * dc[k] * inv_sigma[k] * inv_sigma[k] - 2.0 * s_k * v_s[k]
-                dg = ds_k * mu1[b, k] + s_k * mu2[b, k] * dc[k]
-                dz = -mu1[b, k] * dc[k] * inv_sigma[k] - z[b, k] * v_s[k]
-                cbar[k] = dw * g[b, k] + w * dg
-                h_s[k] += dw * h[b, k] + w * 2.0 * z[b, k] * dz
-        _from_center(cbar, H_inv, robot, b, h_a)
+                for j in range(N):
+                    dgbar[gi, r, j] += w_ind[r, b, j] * dlogp[j]
+                    dgbar[gi, r, N] += w_team[r, b, j] * dlogp[j]
+            for j in range(N):
+                # d of the slopes: d(coef rho) = coef rho d log_ratio (coef piecewise constant)
+                dw = 0.0
+                for r in range(R):
+                    dw += gbar[r, j] * w_ind[r, b, j] * dlogp[j] + gbar[r, N] * w_team[r, b, j] * dteam
+                w = _weight(gbar, w_ind, w_team, b, j)
+                for k in range(ACT * j, ACT * (j + 1)):
+                    s_k = z[b, k] * inv_sigma[k]
+                    ds_k = -mu1[b, k] * dc[k] * inv_sigma[k] * inv_sigma[k] - 2.0 * s_k * vs[k]
+                    dg = ds_k * mu1[b, k] + s_k * mu2[b, k] * dc[k]
+                    dz = -mu1[b, k] * dc[k] * inv_sigma[k] - z[b, k] * vs[k]
+                    cbar[k] = dw * g[b, k] + w * dg
+                    h_s[k] += dw * h[b, k] + w * 2.0 * z[b, k] * dz
+            _from_center(cbar, H_inv, robot, b, h_a, 0, D)
     return dgbar, h_a, h_s

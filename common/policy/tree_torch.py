@@ -114,14 +114,77 @@ def forest_forward(trees, obs, tau: float):
     if not float(tau) > 0:
         raise ValueError(f"tree: tau must be > 0, got {tau}")
     first = trees[0]
-    W = st_top_k(_stacked(trees, "W"), first.split_k).double()
-    w = W / torch.linalg.vector_norm(W, dim=-1, keepdim=True)                  # Eq. (hard_gate)
-    K = st_top_k(_stacked(trees, "K"), first.leaf_k).double()
-    mixed, leaf, nodes, sides = TreeCore.apply(w, _stacked(trees, "b").double(), K,
-                                               _stacked(trees, "beta").double(), obs.double(),
-                                               float(tau), first.depth)
+    _, w, b, K, beta = _core_inputs(trees)
+    mixed, leaf, nodes, sides = TreeCore.apply(w, b, K, beta, obs.double(), float(tau), first.depth)
     action = _stacked(trees, "c_a").double()[:, None] + _stacked(trees, "s_a").double()[:, None] * mixed
     return action.to(first.K.dtype), leaf, nodes, sides
+
+
+def _core_inputs(trees):
+    """``TreeCore``'s float64 inputs from the trees' parameters: the straight-through top-k of
+    W and K, the norms r of W's rows and the unit split vectors w = W / r (Eq. hard_gate)."""
+    first = trees[0]
+    W = st_top_k(_stacked(trees, "W"), first.split_k).double()
+    r = torch.linalg.vector_norm(W, dim=-1, keepdim=True)
+    K = st_top_k(_stacked(trees, "K"), first.leaf_k).double()
+    return r, W / r, _stacked(trees, "b").double(), K, _stacked(trees, "beta").double()
+
+
+class ForestTape:
+    """N trees of one shape at one forward, without an autograd graph, and the closed-form
+    derivatives of their stacked actions z = c_a + s_a mix [B, N*A] in the raw parameters
+    (W, b, K, beta, each stacked [N, ...]; float64 numpy): ``vjp`` is what autograd's backward
+    of ``forest_forward`` gives, ``hvp`` its double backward. Around ``TreeCore``'s kernels only
+    the action scale s_a and the split vectors' normalization w = W / r are written out (the
+    straight-through top-k passes values and derivatives through unchanged):
+
+        grad_W = (grad_w - w (w . grad_w)) / r,    dw = (V_W - w (w . V_W)) / r,
+        d grad_W [V_W] = -(dw (w . grad_w) + w (dw . grad_w)) / r - grad_W (w . V_W) / r."""
+
+    def __init__(self, trees, obs, tau: float):
+        first = trees[0]
+        with torch.no_grad():
+            r, w, b, K, beta = _core_inputs(trees)
+            self.obs = _numpy(obs.double())
+            self.w, self.r, self.K, self.beta = _numpy(w), _numpy(r), _numpy(K), _numpy(beta)
+            mix, self.margins, leaf, self.nodes, self.sides, _, self.t_near, self.g1 = tree_st_forward(
+                self.w, _numpy(b), self.K, self.beta, self.obs, first.depth, float(tau), True)
+            self.leaf, self.tau, self.depth = leaf, float(tau), first.depth
+            self.s_a = _numpy(_stacked(trees, "s_a").double())                     # [N, A]
+            action = _stacked(trees, "c_a").double()[:, None] + torch.from_numpy(self.s_a)[:, None] \
+                * torch.from_numpy(mix)
+            N, B, A = mix.shape
+            self.action = action.to(first.K.dtype).transpose(0, 1).reshape(B, N * A)
+
+    def _mix_cotangent(self, q_z):
+        N, A = self.s_a.shape
+        return np.ascontiguousarray(q_z.reshape(-1, N, A).transpose(1, 0, 2)) * self.s_a[:, None]
+
+    def _from_unit(self, g_w):
+        return (g_w - self.w * (self.w * g_w).sum(-1, keepdims=True)) / self.r
+
+    def vjp(self, q_z):
+        """grad of sum_b q_z[b] . z[b] in (W, b, K, beta) for q_z [B, N*A]."""
+        gw, gb, gK, gbeta = tree_st_vjp(self._mix_cotangent(q_z), self.obs, self.leaf, self.nodes, self.sides,
+                                        self.t_near, self.g1, self.w.shape, self.K.shape)
+        return self._from_unit(gw), gb, gK, gbeta
+
+    def hvp(self, q_z, V):
+        """Along V = (V_W, V_b, V_K, V_beta): the forward derivative of z [B, N*A] and
+        Hess(sum_b q_z[b] . z[b]) V in (W, b, K, beta)."""
+        V_W, V_b, V_K, V_beta = V
+        q = self._mix_cotangent(q_z)
+        dw = self._from_unit(V_W)
+        dmix, hw, hb, hK, hbeta = tree_st_hvp(q, dw, V_b, V_K, V_beta, self.K, self.beta, self.obs,
+                                              self.margins, self.t_near, self.tau, self.depth)
+        g_w = tree_st_vjp(q, self.obs, self.leaf, self.nodes, self.sides, self.t_near, self.g1,
+                          self.w.shape, self.K.shape)[0]
+        g_W = self._from_unit(g_w)
+        curvature = -(dw * (self.w * g_w).sum(-1, keepdims=True) + self.w * (dw * g_w).sum(-1, keepdims=True)) \
+            / self.r - g_W * (self.w * V_W).sum(-1, keepdims=True) / self.r
+        N, B, A = dmix.shape
+        dz = (dmix * self.s_a[:, None]).transpose(1, 0, 2).reshape(B, N * A)
+        return dz, (self._from_unit(hw) + curvature, hb, hK, hbeta)
 
 
 def forest_forward_reference(trees, obs, tau: float):
@@ -286,6 +349,15 @@ class TeamPolicy(nn.Module):
         B = obs.shape[0]
         return TreeOutput(action.transpose(0, 1).reshape(B, -1), leaf.T, nodes.transpose(0, 1),
                           sides.transpose(0, 1))
+
+    def taped(self, obs, tau: float = 1.0) -> ForestTape:
+        """The forward without a graph, keeping what its closed-form derivatives read
+        (``ForestTape``; its ``action`` is ``forward``'s)."""
+        if obs.ndim != 3 or obs.shape[1:] != (self.n_agents, self.obs_dim):
+            raise ValueError(f"team: obs must be [B,{self.n_agents},{self.obs_dim}], got {tuple(obs.shape)}")
+        if not float(tau) > 0:
+            raise ValueError(f"tree: tau must be > 0, got {tau}")
+        return ForestTape(self.trees, obs.transpose(0, 1), tau)
 
     def spec(self) -> ParamsSpec:
         return ParamsSpec(self.n_agents, self.obs_dim, self.act_dim, self.depth)
