@@ -22,6 +22,7 @@ TIERS = {
     "unit": {
         "algos", "algos_critic", "algos_env", "audit_stats", "audit_trace", "audit_tree",
         "base_modules", "bench_scaling", "compare", "driver", "env", "env_fast", "env_kernels", "files_are_data",
+        "gap_closed_form",
         "graded_outcomes", "instrument", "kernels_nogil", "mechanism_metrics", "outcome_metrics", "parallel_env",
         "payload_points", "progress", "proposal", "proposal_kernels", "protocol", "qp", "qp_cli",
         "readme", "report", "report_ci", "row_kernels", "safety", "safety_honesty", "safety_kkt",

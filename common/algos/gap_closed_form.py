@@ -17,9 +17,10 @@ with V = d, T = dz/dtheta (``ForestTape.vjp``), H_tree(q) V and the forward deri
 dz = T V from ``ForestTape.hvp``, and (h_a, h_s) the chain's Hessian along (dz, V_log_std),
 each block's cotangent set seeing only its own block of the direction (``ChainTape.hvp``):
 exactly the passes autograd's double backward runs on the ``Through`` graph, as four kernel
-calls. The values are rounded where autograd rounds them (d and g_team to the parameters'
-dtype, W_gap summed in that dtype, the direction d read back from it), so the two paths agree
-to that dtype's rounding; tests/test_gap_closed_form.py checks them against
+calls. d and g_team are rounded to the parameters' dtype, W_gap summed in it and the direction
+d read back from it, as autograd does; autograd also rounds the cotangents at a_ST to the
+action's dtype, which stay float64 here. So the two paths agree to 1e-10 with float64
+parameters and to float32 rounding with float32 ones; tests/test_gap_closed_form.py checks them against
 ``talo.talo_gap`` on the graph (values, gradients, HVPs) for every method, in float64 and
 float32, with human blocks, sparse trees and a lagged reference.
 """
