@@ -134,7 +134,7 @@ def test_forest_tape_is_autograd_of_the_reference_forest(seed, split_k, leaf_k):
         return np.stack([x.detach().numpy() for x in xs[k::4]])
 
     vjp = tape.vjp(q.numpy())
-    dz, hess = tape.hvp(q.numpy(), [stacked(V, k) for k in range(4)])
+    dz, hess = tape.hvp(q.numpy(), [stacked(V, k) for k in range(4)], tape.unit_vjp(q.numpy())[0])
     for k in range(4):
         ref = stacked(grads, k)
         assert np.abs(ref).max() > 0

@@ -49,17 +49,16 @@ def cotangent_sets(R: int, N: int, reference: int, which: str) -> np.ndarray:
     """Output cotangents [G, R, N+1] of the chain for reference policy ``reference``:
     "ind" (set j: L_j, on carrier j's block), "d" (set j: L_j - L_team) or "team" (L_team,
     one set for every block)."""
+    if which not in ("ind", "d", "team"):
+        raise ValueError(f"unknown cotangent set {which!r}")
     if which == "team":
         sets = np.zeros((1, R, N + 1))
         sets[0, reference, N] = 1.0
         return sets
     sets = np.zeros((N, R, N + 1))
-    for j in range(N):
-        sets[j, reference, j] = 1.0
-        if which == "d":
-            sets[j, reference, N] = -1.0
-    if which not in ("ind", "d"):
-        raise ValueError(f"unknown cotangent set {which!r}")
+    sets[np.arange(N), reference, np.arange(N)] = 1.0
+    if which == "d":
+        sets[:, reference, N] = -1.0
     return sets
 
 
@@ -67,7 +66,7 @@ class Layout:
     """The flat actor vector: carrier by carrier, W, b, K, beta, log_std (``TREE_PARAMETERS``)."""
 
     def __init__(self, groups):
-        self.first = groups[0][0]
+        self.first = groups[0][0]          # read for the dtype at each call (a policy may be cast later)
         self.shapes = [tuple(p.shape) for p in groups[0]]
         self.sizes = [int(np.prod(s)) for s in self.shapes]
         self.N = len(groups)
@@ -85,7 +84,7 @@ class Layout:
 
     def split(self, vec: Tensor):
         """The flat vector as float64 (V_W, V_b, V_K, V_beta) stacked [N, ...] and V_log_std [N*A]."""
-        per = np.asarray(vec.detach().double().numpy()).reshape(self.N, sum(self.sizes))
+        per = vec.detach().double().numpy().reshape(self.N, sum(self.sizes))
         cuts = np.cumsum(self.sizes)[:-1]
         blocks = np.split(per, cuts, axis=1)
         tree = [np.ascontiguousarray(blk).reshape(self.N, *shape) for blk, shape in zip(blocks[:4], self.shapes[:4])]
@@ -101,16 +100,17 @@ def gradient(taped: Taped, sets: np.ndarray, layout: Layout) -> Tensor:
 def talo_gap_closed_form(taped: Taped, reference: int, layout: Layout, with_hvp: bool):
     """``talo.talo_gap`` on the surrogates of reference ``reference``: (g_ind, g_team, W_gap,
     grad W or None), flat in the parameters' dtype."""
-    R, _, N = taped.chain.constants[6].shape
+    R, N = taped.chain.sizes
     d_sets = cotangent_sets(R, N, reference, "d")
     q_d, s_d = taped.chain.vjp(d_sets)
-    d = layout.flat(taped.forest.vjp(q_d), s_d)
+    unit_d = taped.forest.unit_vjp(q_d)
+    d = layout.flat(taped.forest.raw(unit_d), s_d)
     g_team = gradient(taped, cotangent_sets(R, N, reference, "team"), layout)
     w_gap = 0.5 * d.pow(2).sum()
     grad_w = None
     if with_hvp:
         V_tree, V_s = layout.split(d)
-        dz, h_tree = taped.forest.hvp(q_d, V_tree)                      # H_tree(q) V and T V
+        dz, h_tree = taped.forest.hvp(q_d, V_tree, unit_d[0])          # H_tree(q) V and T V
         _, h_a, h_s = taped.chain.hvp(d_sets, dz, V_s)                   # the chain's Hessian along them
         through = taped.forest.vjp(h_a)                                  # T^T h_a
         grad_w = layout.flat([x + y for x, y in zip(h_tree, through)], h_s)

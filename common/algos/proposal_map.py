@@ -216,5 +216,4 @@ class ProposalMap:
         """g_ind = [grad_{theta_i} L_i]_i of taped surrogates ``s`` (None without tapes)."""
         if s.taped is None:
             return None
-        R, _, N = s.taped.chain.constants[6].shape
-        return gradient(s.taped, cotangent_sets(R, N, s.reference, "ind"), self.layout)
+        return gradient(s.taped, cotangent_sets(*s.taped.chain.sizes, s.reference, "ind"), self.layout)

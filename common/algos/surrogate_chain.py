@@ -80,6 +80,12 @@ class ChainTape:
     H_inv: np.ndarray
     robot: np.ndarray
 
+    @property
+    def sizes(self) -> tuple[int, int]:
+        """(R, N): reference policies and carriers."""
+        R, _, N = self.constants[6].shape
+        return R, N
+
     def vjp(self, gbars: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Cotangents of (a_ST [B,D], log_std [D])."""
         _, _, _, g, h, _, w_ind, w_team = self.constants

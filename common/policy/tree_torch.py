@@ -163,22 +163,28 @@ class ForestTape:
     def _from_unit(self, g_w):
         return (g_w - self.w * (self.w * g_w).sum(-1, keepdims=True)) / self.r
 
-    def vjp(self, q_z):
-        """grad of sum_b q_z[b] . z[b] in (W, b, K, beta) for q_z [B, N*A]."""
-        gw, gb, gK, gbeta = tree_st_vjp(self._mix_cotangent(q_z), self.obs, self.leaf, self.nodes, self.sides,
-                                        self.t_near, self.g1, self.w.shape, self.K.shape)
+    def unit_vjp(self, q_z):
+        """grad of sum_b q_z[b] . z[b] in (w, b, K, beta): the split vectors' block in the unit
+        vectors w (what ``hvp`` reads), the others in the parameters themselves."""
+        return tree_st_vjp(self._mix_cotangent(q_z), self.obs, self.leaf, self.nodes, self.sides,
+                           self.t_near, self.g1, self.w.shape, self.K.shape)
+
+    def raw(self, unit):
+        """``unit_vjp``'s answer in the raw parameters (W, b, K, beta)."""
+        gw, gb, gK, gbeta = unit
         return self._from_unit(gw), gb, gK, gbeta
 
-    def hvp(self, q_z, V):
+    def vjp(self, q_z):
+        """grad of sum_b q_z[b] . z[b] in (W, b, K, beta) for q_z [B, N*A]."""
+        return self.raw(self.unit_vjp(q_z))
+
+    def hvp(self, q_z, V, g_w):
         """Along V = (V_W, V_b, V_K, V_beta): the forward derivative of z [B, N*A] and
-        Hess(sum_b q_z[b] . z[b]) V in (W, b, K, beta)."""
+        Hess(sum_b q_z[b] . z[b]) V in (W, b, K, beta); ``g_w`` = ``unit_vjp(q_z)[0]``."""
         V_W, V_b, V_K, V_beta = V
-        q = self._mix_cotangent(q_z)
         dw = self._from_unit(V_W)
-        dmix, hw, hb, hK, hbeta = tree_st_hvp(q, dw, V_b, V_K, V_beta, self.K, self.beta, self.obs,
-                                              self.margins, self.t_near, self.tau, self.depth)
-        g_w = tree_st_vjp(q, self.obs, self.leaf, self.nodes, self.sides, self.t_near, self.g1,
-                          self.w.shape, self.K.shape)[0]
+        dmix, hw, hb, hK, hbeta = tree_st_hvp(self._mix_cotangent(q_z), dw, V_b, V_K, V_beta, self.K, self.beta,
+                                              self.obs, self.margins, self.t_near, self.tau, self.depth)
         g_W = self._from_unit(g_w)
         curvature = -(dw * (self.w * g_w).sum(-1, keepdims=True) + self.w * (dw * g_w).sum(-1, keepdims=True)) \
             / self.r - g_W * (self.w * V_W).sum(-1, keepdims=True) / self.r
