@@ -170,7 +170,7 @@ def test_the_ppo_surrogate_keeps_the_behaviour_ratio():
     before = flat(m)
     _, gap = joint_step(m, mb, TAU, KAPPA)
     torch.testing.assert_close(flat(m) - before, m.cfg.talo_eta * g, rtol=1e-9, atol=1e-12)
-    assert gap["w_gap"] == 0.0       # while the diagnostics were taken at ratio 1
+    assert gap.w_gap == 0.0       # while the diagnostics were taken at ratio 1
 
 
 @pytest.mark.parametrize("name", ["talo_cbf", "sail_cbf"])
@@ -275,6 +275,34 @@ def test_local_ab_is_deterministic_and_leaves_the_parameters(name):
         assert at_start["ab_w_talo"] == at_start["ab_w_ind"] and at_start["ab_ratio"] == 1.0
 
 
+@pytest.mark.parametrize("name", ["happo", "sail_cbf", "talo_cbf", "sage", "joint_cbf"])
+@pytest.mark.parametrize("on_policy", [True, False])
+def test_the_ab_reads_the_steps_forward_to_the_same_bits(name, on_policy):
+    """``local_ab`` given the update step's ``GapAtStart`` (what ``Method.update`` passes:
+    the forward, and on-policy a TALO method's grad W, at the parameters before the step)
+    answers what it answers from a forward of its own, bit for bit."""
+    m = make_method(name, small_cfg(), OBS, 0)
+    mb, _ = m._prepare(small_batch(m) if on_policy else lagged_batch(m))
+    mb = m.proposal.prepared(mb)
+    kappa = m.actor_settings(0.5)["kappa"]
+    if on_policy:   # the stored log-density exactly the learner's (see the test above)
+        mb.logp_old = torch.where(mb.active, m.proposal.start_log_prob(mb, TAU, kappa), mb.logp_old)
+    mb.logp_start = m.proposal.start_log_prob(mb, TAU, kappa)
+    with torch.no_grad():               # off the start, as the last minibatch of an update is
+        for p in m.actor_params:
+            p.add_(0.02 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel()),
+                                      dtype=p.dtype))
+    before = [p.detach().clone() for p in m.actor_params]
+    _, gap = m.update_step(m, mb, TAU, kappa)
+    assert gap.reusable
+    assert (gap.grad_w is not None) == (on_policy and m.joint_step and m.uses_talo)
+    reused = m.local_ab(mb, TAU, kappa, 0.05, at=before, gap=gap)
+    fresh = m.local_ab(mb, TAU, kappa, 0.05, at=before)
+    assert reused.keys() == fresh.keys()
+    for key, value in fresh.items():
+        assert reused[key] == value or (np.isnan(value) and np.isnan(reused[key])), key
+
+
 def test_update_logs_the_ab_on_its_last_minibatch():
     m = make_method("talo_cbf", small_cfg(), OBS, 0)
     d = m.update(lagged_batch(m), 0.5)
@@ -324,7 +352,7 @@ def test_direct_talo_step_meets_descent_condition():
     stats, gap = joint_step(m, mb, TAU, KAPPA)
     delta = flat(m) - before
     assert stats["delta_gap"] > 0 and stats["talo_corrected"] == 1.0
-    assert gap["w_gap"] == pytest.approx(w_start, rel=1e-12)    # the diagnostics: ratio 1 at theta_0
+    assert gap.w_gap == pytest.approx(w_start, rel=1e-12)    # the diagnostics: ratio 1 at theta_0
     eta = m.cfg.talo_eta
     assert float(grad_w @ delta) <= -sigma * float(w0) * eta + 1e-8
     assert stats["talo_condition_met"] == 1.0 and stats["talo_step_decreases_gap"] == 1.0

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -27,7 +28,7 @@ from torch import Tensor
 
 from common.algos.batch import Minibatch
 from common.algos.config import AlgoConfig
-from common.algos.proposal_map import ProposalMap, StartPoint
+from common.algos.proposal_map import ProposalMap, StartPoint, Surrogates
 from common.algos.talo import cosine, equal_length_ab, talo_project, unflatten_like
 from common.shield.qp import solve_cbf_qp
 
@@ -42,19 +43,43 @@ def restore(params: list[Tensor], values: list[Tensor]) -> None:
             p.copy_(v)
 
 
-def gap_stats(g_ind: Tensor, g_team: Tensor, w_gap) -> dict[str, float]:
-    return {"w_gap": float(w_gap), "cos_ind_team": cosine(g_ind, g_team)}
+@dataclass
+class GapAtStart:
+    """W_gap and cos(g_ind, g_team) at a minibatch's parameters before its step (ratios
+    against the update's start), and what they were computed from: the forward's a_ST, its
+    surrogates ``start``, g_ind, W and, where the step took it, grad W. ``local_ab`` at the
+    same parameters on the same minibatch reads them instead of a second forward, SAIL
+    solve and (for the TALO methods, on-policy) HVP."""
+    w_gap: float
+    cos_ind_team: float
+    a_st: Tensor
+    start: Surrogates
+    g_ind: Tensor
+    w: Tensor
+    grad_w: Tensor | None = None
+
+    @classmethod
+    def of(cls, g_ind: Tensor, g_team: Tensor, w: Tensor, a_st: Tensor, start: Surrogates,
+           grad_w: Tensor | None = None) -> "GapAtStart":
+        return cls(float(w), cosine(g_ind, g_team), a_st, start, g_ind, w, grad_w)
+
+    @property
+    def reusable(self) -> bool:
+        """Taped surrogates hold their own copy of the forward; an autograd graph reads the
+        live parameters, which the step has since moved."""
+        return self.start.taped is not None
 
 
 def gap_diagnostics(proposal: ProposalMap, mb: Minibatch, tau: float, kappa: float):
     """W_gap and cos(g_ind, g_team) (Eq. talo_gap, no HVP, ratios against the update's
     start) at the current parameters, for the sequential methods (the joint step
-    measures them itself). Also returns the ``StartPoint``, which the HAPPO step
-    reuses: the forward (saves a SAIL solve) and its first carrier's surrogate."""
+    measures them itself): a ``GapAtStart``. Also returns the ``StartPoint``, which the
+    HAPPO step reuses: the forward (saves a SAIL solve) and its first carrier's surrogate."""
     a_st, step, behaviour, start = proposal.start_point(mb, tau, kappa)
     g_ind, g_team, w, _ = proposal.gap(a_st, start, with_hvp=False)
     g_behaviour = g_ind if start is behaviour else proposal.individual_gradient(behaviour)
-    return gap_stats(g_ind, g_team, w), StartPoint(a_st.detach().clone(), step, behaviour, g_behaviour)
+    a_st = a_st.detach().clone()
+    return GapAtStart.of(g_ind, g_team, w, a_st, start), StartPoint(a_st, step, behaviour, g_behaviour)
 
 
 def logratio_at_start(data: Minibatch) -> float:
@@ -66,7 +91,7 @@ def logratio_at_start(data: Minibatch) -> float:
 
 
 def local_ab(proposal: ProposalMap, cfg: AlgoConfig, mb: Minibatch, tau: float, kappa: float,
-             length: float, at: list[Tensor] | None = None) -> dict[str, float]:
+             length: float, at: list[Tensor] | None = None, gap: GapAtStart | None = None) -> dict[str, float]:
     """The local claim of Eq. (talo_condition) as a measurement, the same for every
     method: on the frozen minibatch ``mb`` at parameters ``at`` (default: the
     current ones), W_gap (ratios against the update's start, as the diagnostics)
@@ -79,7 +104,8 @@ def local_ab(proposal: ProposalMap, cfg: AlgoConfig, mb: Minibatch, tau: float, 
     two directions, what Eq. talo_condition is about; in the split parameters' blocks
     grad W is the straight-through surrogate, common/algos/talo.py),
     ``ab_corrected`` (Delta_gap > 0; else g_TALO = g_ind and the ratio is 1) and
-    ``ab_step`` (the length)."""
+    ``ab_step`` (the length). ``gap``: the update step's ``GapAtStart`` on ``mb`` at these
+    parameters, whose forward (and grad W, where taken) is reused where it is taped."""
     params = proposal.params
     current = snapshot(params)
     try:
@@ -88,8 +114,13 @@ def local_ab(proposal: ProposalMap, cfg: AlgoConfig, mb: Minibatch, tau: float, 
         base = snapshot(params)
         if mb.logp_start is None:   # these parameters are the start: fix the reference here
             mb = dataclasses.replace(mb, logp_start=proposal.start_log_prob(mb, tau, kappa))
-        a_st, _, _, start = proposal.start_point(mb, tau, kappa)
-        g_ind, _, w0, grad_w = proposal.gap(a_st, start, with_hvp=True)
+        if gap is not None and gap.reusable:
+            a_st, start, g_ind, w0, grad_w = gap.a_st, gap.start, gap.g_ind, gap.w, gap.grad_w
+        else:
+            a_st, _, _, start = proposal.start_point(mb, tau, kappa)
+            grad_w = None
+        if grad_w is None:
+            g_ind, _, w0, grad_w = proposal.gap(a_st, start, with_hvp=True)
         g_talo, delta = talo_project(g_ind, grad_w, w0, cfg.talo_sigma, cfg.talo_eps)
 
         def w_at(displacement: Tensor) -> float:

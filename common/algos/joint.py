@@ -16,14 +16,14 @@ import torch
 from torch import nn
 
 from common.algos.batch import Minibatch
-from common.algos.diagnostics import gap_stats, snapshot, talo_condition
+from common.algos.diagnostics import GapAtStart, snapshot, talo_condition
 from common.algos.talo import flat_grad, talo_project, unflatten_like
 
 
-def joint_step(learner, mb: Minibatch, tau: float, kappa: float) -> tuple[dict[str, float], dict]:
+def joint_step(learner, mb: Minibatch, tau: float, kappa: float) -> tuple[dict[str, float], GapAtStart]:
     """One joint step of ``learner`` (a ``Method``: its ``proposal``, ``actor_opts``,
     ``cfg`` and ``uses_talo``) on ``mb``. Returns (stats, W_gap/cos measured before
-    the step, ratios against the update's start)."""
+    the step, ratios against the update's start: a ``GapAtStart``)."""
     cfg, proposal = learner.cfg, learner.proposal
     params = proposal.params
     a_st, _, behaviour, start = proposal.start_point(mb, tau, kappa)
@@ -31,8 +31,8 @@ def joint_step(learner, mb: Minibatch, tau: float, kappa: float) -> tuple[dict[s
     # the algorithm's gap: ratios against the behaviour policy (Eq. ppo_surrogates)
     g_ind, g_team, w, grad_w = proposal.gap(a_st, behaviour, with_hvp=learner.uses_talo)
     # the diagnostics' gap: ratios against the update's start (the same one on-policy)
-    gap = gap_stats(g_ind, g_team, w) if start is behaviour \
-        else gap_stats(*proposal.gap(a_st, start, with_hvp=False)[:3])
+    gap = GapAtStart.of(g_ind, g_team, w, a_st, start, grad_w) if start is behaviour \
+        else GapAtStart.of(*proposal.gap(a_st, start, with_hvp=False)[:3], a_st, start)
     entropy = proposal.entropy()
     g_ent = cfg.ent_coef * flat_grad(entropy.sum(), params) if cfg.ent_coef > 0 \
         else torch.zeros_like(g_ind)

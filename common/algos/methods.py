@@ -70,7 +70,7 @@ def flush_subnormals():
         torch.set_flush_denormal(before)
 
 # the registry's ``MethodSpec.step`` -> the function that steps the actors on one minibatch:
-# step(method, minibatch, tau, kappa) -> (stats, W_gap/cos before the step)
+# step(method, minibatch, tau, kappa) -> (stats, W_gap/cos before the step: a ``GapAtStart``)
 STEP_FUNCTIONS = {"sequential": sequential_step, "joint": joint_step}
 assert tuple(STEP_FUNCTIONS) == UPDATE_STEPS
 
@@ -164,11 +164,11 @@ class Method:
                                              for p, b in zip(self.actor_params, before)]).norm())
                 stats["actor_step_norm"] = step_norm
                 # W_gap, cos(g_ind, g_team): measured at the parameters before this minibatch's step
-                w_trace.append(gap["w_gap"])
-                cos_trace.append(gap["cos_ind_team"])
+                w_trace.append(gap.w_gap)
+                cos_trace.append(gap.cos_ind_team)
                 if ab and epoch == self.cfg.epochs - 1 and j == n_mb - 1:
                     length = self.cfg.mech_ab_step or step_norm
-                    log(self.local_ab(mb, tau, kappa, length, at=before))
+                    log(self.local_ab(mb, tau, kappa, length, at=before, gap=gap))
                 log(stats)
                 log(self._critic_step(mb))
         self.updates += 1
@@ -179,11 +179,12 @@ class Method:
         return diag
 
     def local_ab(self, mb: Minibatch, tau: float, kappa: float, length: float,
-                 at: list[Tensor] | None = None) -> dict[str, float]:
+                 at: list[Tensor] | None = None, gap: diagnostics.GapAtStart | None = None) -> dict[str, float]:
         """The local claim of Eq. (talo_condition) on the frozen minibatch ``mb``: W_gap
         after a step of length ``length`` along g_TALO and along g_ind, from parameters
-        ``at`` (default: the current ones); see ``diagnostics.local_ab``."""
-        return diagnostics.local_ab(self.proposal, self.cfg, mb, tau, kappa, length, at=at)
+        ``at`` (default: the current ones; ``gap``: the step's gap there, to reuse); see
+        ``diagnostics.local_ab``."""
+        return diagnostics.local_ab(self.proposal, self.cfg, mb, tau, kappa, length, at=at, gap=gap)
 
     # ------------------------------------------------------------------ batch and critic
 

@@ -22,17 +22,18 @@ import torch
 from torch import nn
 
 from common.algos.batch import Minibatch
-from common.algos.diagnostics import gap_diagnostics
+from common.algos.diagnostics import GapAtStart, gap_diagnostics
 from common.algos.proposal_map import StartPoint
 from common.algos.talo import flat_grad, unflatten_like
 from common.policy.proposal import proposal_entropy
 from common.spec import CARRIER_ACT_DIM
 
 
-def sequential_step(learner, mb: Minibatch, tau: float, kappa: float) -> tuple[dict[str, float], dict]:
+def sequential_step(learner, mb: Minibatch, tau: float, kappa: float) -> tuple[dict[str, float], GapAtStart]:
     """One HAPPO step of ``learner`` (a ``Method``) on ``mb``, carriers in this update's
     order (appended to ``learner.last_happo_orders``, which ``Method.update`` empties).
-    Returns (stats, W_gap/cos measured before the step, ratios against the update's start)."""
+    Returns (stats, W_gap/cos measured before the step, ratios against the update's start:
+    a ``GapAtStart``)."""
     orders = learner.last_happo_orders
     if not orders or learner.cfg.happo_order == "minibatch":
         # drawn after epoch 0's permutation, so that every method sees the same minibatches

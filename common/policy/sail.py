@@ -55,7 +55,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from common.policy.sail_kernels import sail_implicit_step, sail_newton, sail_prepare
+from common.policy.sail_kernels import sail_newton, sail_newton_implicit, sail_prepare
 
 if TYPE_CHECKING:  # pragma: no cover
     import torch
@@ -246,10 +246,7 @@ def sail_implicit_step_np(a_st, C, c, mask, kappa, fixed_mask, fixed_action,
         kappa = _kappa_per_sample(kappa, a.shape[0])
         a = np.where(np.asarray(fixed_mask, dtype=bool), np.asarray(fixed_action, dtype=np.float64), a)
         (Cn, cn, keep), n_newton, damping = rows, config.n_newton, config.damping
-    args = _kernel_args(a, Cn, cn, keep, kappa)
-    x_star = sail_newton(*args, n_newton, damping == "exact")
-    H_inv, offset = sail_implicit_step(x_star, *args[1:])
-    return x_star, H_inv, offset
+    return sail_newton_implicit(*_kernel_args(a, Cn, cn, keep, kappa), n_newton, damping == "exact")
 
 
 # ----------------------------------------------------------------------------- torch (differentiable)

@@ -179,6 +179,80 @@ def _line_search(x, dx, a, Ck, r, m, kap, s, tb, valid):
     return _npmin(_npmax(t, lo), hi)
 
 
+@njit(cache=True, inline="always")
+def _kept_rows(Cn_b, cn_b, keep_b, Ck, ck):
+    """The kept rows of one sample, in order, into ``Ck``, ``ck``; returns their count."""
+    M, d = Cn_b.shape
+    m = 0
+    for j in range(M):
+        if keep_b[j]:
+            for k in range(d):
+                Ck[m, k] = Cn_b[j, k]
+            ck[m] = cn_b[j]
+            m += 1
+    return m
+
+
+@njit(cache=True, inline="always")
+def _newton_sample(ab, Ck, ck, m, kap, n_newton, exact_damping, x, resid, act, ia, s, tb, valid,
+                   g, dx, y, H, L, z, r_y):
+    """The damped Newton loop of ``reference.sail_project`` for one sample (kept rows
+    ``Ck[:m]``, ``ck[:m]``), from x = ``ab`` (overwritten with the iterate). Returns the
+    number of active rows ``na`` if the loop ended on an exact step (the full step kept the
+    active set, so x is that piece's minimizer), -1 if it ran out of steps. On an exact
+    exit the active rows at x are ``ia[:na]`` (in order), ``r_y[:m]`` the residuals there,
+    and ``L`` (where na > 0) the Cholesky factor of H = I + kappa C_A^T C_A over them."""
+    d = x.shape[0]
+    for k in range(d):
+        x[k] = ab[k]
+    for _ in range(n_newton):
+        _residuals(Ck, ck, m, x, resid)
+        na = 0
+        for j in range(m):
+            act[j] = resid[j] > 0.0
+            if act[j]:
+                ia[na] = j
+                na += 1
+        for k in range(d):  # grad = (x - a) - kappa C_A^T r_A
+            acc = 0.0
+            for n in range(na):
+                acc += resid[ia[n]] * Ck[ia[n], k]
+            g[k] = (x[k] - ab[k]) - kap * acc
+        if na == 0:  # H = I: the Cholesky solve gives exactly -grad
+            for k in range(d):
+                dx[k] = -g[k]
+        else:
+            _penalty_hessian(Ck, ia, na, kap, H)
+            _cholesky_solve(H, g, L, z, dx)
+        for k in range(d):
+            y[k] = x[k] + dx[k]
+        exact = True  # the full step keeps the active set: the minimizer of this piece
+        for j in range(m):
+            acc = 0.0
+            for k in range(d):
+                acc += Ck[j, k] * y[k]
+            r_y[j] = ck[j] - acc
+            if (r_y[j] > 0.0) != act[j]:
+                exact = False
+                break
+        t = 1.0
+        if exact_damping and not exact:
+            t = _line_search(x, dx, ab, Ck, resid, m, kap, s, tb, valid)
+        for k in range(d):
+            x[k] = x[k] + t * dx[k]
+        if exact:
+            return na
+    return -1
+
+
+@njit(cache=True, inline="always")
+def _workspace(M, d):
+    """Scratch of one sample's solve: (Ck, ck, resid, act, ia, s, tb, valid, g, dx, y, H, L, z, r_y)."""
+    return (np.empty((M, d)), np.empty(M), np.empty(M), np.empty(M, dtype=np.bool_), np.empty(M, dtype=np.int64),
+            np.empty(M), np.empty(M), np.empty(M, dtype=np.bool_), np.empty(d), np.empty(d), np.empty(d),
+            np.empty((d, d)), np.zeros((d, d)), np.empty(d), np.empty(M))
+
+
 @njit(cache=True, nogil=True)
 def sail_newton(a, Cn, cn, keep, kappa, n_newton, exact_damping):
     """The damped Newton loop of ``reference.sail_project`` over the batch.
@@ -188,73 +262,69 @@ def sail_newton(a, Cn, cn, keep, kappa, n_newton, exact_damping):
     Returns x [B,d] (float64)."""
     B, M, d = Cn.shape
     out = np.empty((B, d))
-    Ck = np.empty((M, d))
-    ck = np.empty(M)
-    resid = np.empty(M)
-    act = np.empty(M, dtype=np.bool_)
-    ia = np.empty(M, dtype=np.int64)
-    s = np.empty(M)
-    tb = np.empty(M)
-    valid = np.empty(M, dtype=np.bool_)
-    x = np.empty(d)
-    ab = np.empty(d)
-    y = np.empty(d)
-    g = np.empty(d)
-    dx = np.empty(d)
-    H = np.empty((d, d))
-    L = np.zeros((d, d))
-    z = np.empty(d)
+    Ck, ck, resid, act, ia, s, tb, valid, g, dx, y, H, L, z, r_y = _workspace(M, d)
     for b in range(B):
-        m = 0
-        for j in range(M):  # the kept rows, in order
-            if keep[b, j]:
-                for k in range(d):
-                    Ck[m, k] = Cn[b, j, k]
-                ck[m] = cn[b, j]
-                m += 1
-        for k in range(d):
-            ab[k] = a[b, k]
-            x[k] = a[b, k]
-        kap = kappa[b]
-        for _ in range(n_newton):
-            _residuals(Ck, ck, m, x, resid)
-            na = 0
-            for j in range(m):
-                act[j] = resid[j] > 0.0
-                if act[j]:
-                    ia[na] = j
-                    na += 1
-            for k in range(d):  # grad = (x - a) - kappa C_A^T r_A
-                acc = 0.0
-                for n in range(na):
-                    acc += resid[ia[n]] * Ck[ia[n], k]
-                g[k] = (x[k] - ab[k]) - kap * acc
-            if na == 0:  # H = I: the Cholesky solve gives exactly -grad
-                for k in range(d):
-                    dx[k] = -g[k]
-            else:
-                _penalty_hessian(Ck, ia, na, kap, H)
-                _cholesky_solve(H, g, L, z, dx)
-            for k in range(d):
-                y[k] = x[k] + dx[k]
-            exact = True  # the full step keeps the active set: the minimizer of this piece
-            for j in range(m):
-                acc = 0.0
-                for k in range(d):
-                    acc += Ck[j, k] * y[k]
-                if (ck[j] - acc > 0.0) != act[j]:
-                    exact = False
-                    break
-            t = 1.0
-            if exact_damping and not exact:
-                t = _line_search(x, dx, ab, Ck, resid, m, kap, s, tb, valid)
-            for k in range(d):
-                x[k] = x[k] + t * dx[k]
-            if exact:
-                break
-        for k in range(d):
-            out[b, k] = x[k]
+        m = _kept_rows(Cn[b], cn[b], keep[b], Ck, ck)
+        _newton_sample(a[b], Ck, ck, m, kappa[b], n_newton, exact_damping, out[b], resid, act, ia, s, tb, valid,
+                       g, dx, y, H, L, z, r_y)
     return out
+
+
+@njit(cache=True, inline="always")
+def _inverse_from_factor(L, Li, H_inv):
+    """H^{-1} = L^{-T} L^{-1} (symmetric, both triangles) from the Cholesky factor ``L``; ``Li`` scratch."""
+    d = L.shape[0]
+    for k in range(d):                          # Li = L^{-1} (lower triangular)
+        for i in range(d):
+            Li[i, k] = 0.0
+        Li[k, k] = 1.0 / L[k, k]
+        for i in range(k + 1, d):
+            acc = 0.0
+            for m in range(k, i):
+                acc += L[i, m] * Li[m, k]
+            Li[i, k] = -acc / L[i, i]
+    for i in range(d):                          # H^{-1} = Li^T Li (symmetric)
+        for k in range(i + 1):
+            acc = 0.0
+            for m in range(i, d):
+                acc += Li[m, i] * Li[m, k]
+            H_inv[i, k] = acc
+            H_inv[k, i] = acc
+
+
+@njit(cache=True, inline="always")
+def _step_constants(x, Cr, r, ia, na, kap, H, L, Li, factored, H_inv, offset):
+    """The implicit step's constants at a solution x over its active rows ``Cr[ia[:na]]``
+    (residuals ``r`` indexed the same way): offset = x - kappa C_J^T r_J and H^{-1}, from the
+    Cholesky factor already in ``L`` where ``factored``."""
+    d = x.shape[0]
+    for i in range(d):
+        acc = 0.0
+        for n in range(na):
+            acc += r[ia[n]] * Cr[ia[n], i]
+        offset[i] = x[i] - kap * acc
+    if na == 0:   # H = I
+        for i in range(d):
+            for k in range(d):
+                H_inv[i, k] = 1.0 if i == k else 0.0
+        return
+    if not factored:
+        _penalty_hessian(Cr, ia, na, kap, H)
+        _cholesky_factor(H, L)                  # H = L L^T
+    _inverse_from_factor(L, Li, H_inv)
+
+
+@njit(cache=True, inline="always")
+def _implicit_sample(x, Cb, cb, keep_b, kap, r, ia, H, L, Li, H_inv, offset):
+    """``sail_implicit_step`` for one sample: the rows active at x (kept, positive residual)."""
+    M = Cb.shape[0]
+    _residuals(Cb, cb, M, x, r)
+    na = 0
+    for j in range(M):   # the active rows, in order (as sail_newton sums them)
+        if keep_b[j] and r[j] > 0.0:
+            ia[na] = j
+            na += 1
+    _step_constants(x, Cb, r, ia, na, kap, H, L, Li, False, H_inv, offset)
 
 
 @njit(cache=True, nogil=True)
@@ -273,43 +343,33 @@ def sail_implicit_step(x_star, Cn, cn, keep, kappa):
     r = np.empty(M)
     ia = np.empty(M, dtype=np.int64)
     for b in range(B):
-        kap = kappa[b]
-        Cb = Cn[b]
-        _residuals(Cb, cn[b], M, x_star[b], r)
-        na = 0
-        for j in range(M):   # the active rows, in order (as sail_newton sums them)
-            if keep[b, j] and r[j] > 0.0:
-                ia[na] = j
-                na += 1
-        for i in range(d):
-            acc = 0.0
-            for n in range(na):
-                acc += r[ia[n]] * Cb[ia[n], i]
-            offset[b, i] = x_star[b, i] - kap * acc
-        _penalty_hessian(Cb, ia, na, kap, H)
-        if na == 0:   # H = I
-            for i in range(d):
-                for k in range(d):
-                    H_inv[b, i, k] = 1.0 if i == k else 0.0
-            continue
-        _cholesky_factor(H, L)                      # H = L L^T
-        for k in range(d):                          # Li = L^{-1} (lower triangular)
-            for i in range(d):
-                Li[i, k] = 0.0
-            Li[k, k] = 1.0 / L[k, k]
-            for i in range(k + 1, d):
-                acc = 0.0
-                for m in range(k, i):
-                    acc += L[i, m] * Li[m, k]
-                Li[i, k] = -acc / L[i, i]
-        for i in range(d):                          # H^{-1} = Li^T Li (symmetric)
-            for k in range(i + 1):
-                acc = 0.0
-                for m in range(i, d):
-                    acc += Li[m, i] * Li[m, k]
-                H_inv[b, i, k] = acc
-                H_inv[b, k, i] = acc
+        _implicit_sample(x_star[b], Cn[b], cn[b], keep[b], kappa[b], r, ia, H, L, Li, H_inv[b], offset[b])
     return H_inv, offset
+
+
+@njit(cache=True, nogil=True)
+def sail_newton_implicit(a, Cn, cn, keep, kappa, n_newton, exact_damping):
+    """``sail_newton`` and ``sail_implicit_step`` at its answer in one pass, the same bits:
+    where the loop ends on an exact step the rows active at x* are the last step's (that is
+    what exact means), so H, its Cholesky factor and the residuals there are the ones the
+    loop just computed, in the same order; otherwise (out of steps) they are computed
+    afresh at x* as ``sail_implicit_step`` does. Returns (x [B,d], H_inv [B,d,d], offset [B,d])."""
+    B, M, d = Cn.shape
+    out = np.empty((B, d))
+    H_inv = np.empty((B, d, d))
+    offset = np.empty((B, d))
+    Li = np.empty((d, d))
+    Ck, ck, resid, act, ia, s, tb, valid, g, dx, y, H, L, z, r_y = _workspace(M, d)
+    for b in range(B):
+        kap = kappa[b]
+        m = _kept_rows(Cn[b], cn[b], keep[b], Ck, ck)
+        na = _newton_sample(a[b], Ck, ck, m, kap, n_newton, exact_damping, out[b], resid, act, ia, s, tb, valid,
+                            g, dx, y, H, L, z, r_y)
+        if na >= 0:
+            _step_constants(out[b], Ck, r_y, ia, na, kap, H, L, Li, True, H_inv[b], offset[b])
+        else:
+            _implicit_sample(out[b], Cn[b], cn[b], keep[b], kap, resid, ia, H, L, Li, H_inv[b], offset[b])
+    return out, H_inv, offset
 
 
 @njit(cache=True, nogil=True)
