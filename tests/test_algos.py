@@ -72,6 +72,13 @@ def test_bad_batches_are_rejected():
         m.update(trunc, 0.0)
     with pytest.raises(ValueError, match="unknown method"):
         make_method("ppo", AlgoConfig(), OBS, 0)
+    # the actors' centers are optional (the SAIL solves' warm start) but checked where present
+    sage = make_method("sage", AlgoConfig(), OBS, 0)
+    good = small_batch(sage)
+    for a_bar, match in ((good["a_bar"][..., :-1], "a_bar.*shape"), (np.full_like(good["a_bar"], np.nan), "a_bar.*NaN")):
+        with pytest.raises(ValueError, match=match):
+            sage.update(dict(good, a_bar=a_bar), 0.0)
+    sage.update({k: v for k, v in good.items() if k != "a_bar"}, 0.0)
 
 
 def prepared(name, seed=0, double=True, human_rate=0.2):

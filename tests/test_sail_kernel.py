@@ -277,12 +277,60 @@ def test_fused_solve_and_step_equals_the_two_kernels_bit_for_bit(seed, n_newton,
     kappa = rng.choice(KAPPAS, 64)
     Cn, cn, keep = normalize_rows(C, c, mask)
     args = [np.ascontiguousarray(v) for v in (a, Cn, cn, keep, kappa)]
-    x, H_inv, offset = sail_kernels.sail_newton_implicit(*args, n_newton, damping == "exact")
+    x, H_inv, offset = sail_kernels.sail_newton_implicit(*args, n_newton, damping == "exact", np.empty((0, D)))
     x_ref = sail_kernels.sail_newton(*args, n_newton, damping == "exact")
     H_ref, off_ref = sail_kernels.sail_implicit_step(x_ref, *args[1:])
     assert np.array_equal(x, x_ref) and np.array_equal(H_inv, H_ref) and np.array_equal(offset, off_ref)
     if n_newton == 20:
         assert np.any(H_inv[4:] != np.eye(D))           # active rows reached the factor reuse
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("n_newton", [1, 2, 20])
+def test_a_warm_start_gives_the_cold_answer(seed, n_newton):
+    """``sail_newton_implicit`` from x0 near the answer (the learner's warm start: the
+    actors' solution at nearby a): where the warm loop converges, the cold answer to
+    rounding, with the same active rows (the same H^{-1} to rounding); where it does not
+    (1-2 steps), the cold loop's own iterate, bit for bit. From x0 = a exactly the cold
+    loop's bits everywhere; a start at the answer itself converges on its first step."""
+    rng = np.random.default_rng(20 + seed)
+    a, C, c, mask = _random_problem(rng, 64, 30)
+    kappa = rng.choice(KAPPAS, 64)
+    Cn, cn, keep = normalize_rows(C, c, mask)
+    args = [np.ascontiguousarray(v) for v in (a, Cn, cn, keep, kappa)]
+    empty = np.empty((0, D))
+    x_cold, H_cold, off_cold = sail_kernels.sail_newton_implicit(*args, n_newton, True, empty)
+    x_full = sail_kernels.sail_newton(*args, 20, True)
+    x0 = x_full + rng.normal(0.0, 1e-3, x_full.shape)
+    x, H_inv, offset = sail_kernels.sail_newton_implicit(*args, n_newton, True, x0)
+    cold_done = np.all(np.abs(x_cold - x_full) <= 1e-12 * (1 + np.abs(x_full)), axis=1)
+    same = np.all(x == x_cold, axis=1)
+    near = np.all(np.abs(x - x_full) <= 1e-12 * (1 + np.abs(x_full)), axis=1)
+    assert np.all(same | near)                           # either the cold bits or the answer
+    assert np.all(same[~near])                           # not converged from x0: cold's own iterate
+    np.testing.assert_allclose(H_inv[cold_done & near], H_cold[cold_done & near], rtol=0, atol=1e-9)
+    if n_newton == 20:
+        assert np.all(near)
+    for got, want in zip(sail_kernels.sail_newton_implicit(*args, n_newton, True, a.copy()),
+                         (x_cold, H_cold, off_cold)):
+        assert np.array_equal(got, want)
+    at_answer = sail_kernels.sail_newton_implicit(*args, 1, True, x_full)[0]
+    np.testing.assert_allclose(at_answer, x_full, rtol=0, atol=1e-12)
+
+
+def test_a_warm_start_is_checked():
+    rng = np.random.default_rng(3)
+    a, C, c, mask = _random_problem(rng, 8, 5)
+    fixed = np.zeros((8, D), bool)
+    fixed[:, 6:] = True
+    human = rng.uniform(-0.5, 0.5, (8, D))
+    x, _, _ = sail_implicit_step_np(a, C, c, mask, 3.0, fixed, human)
+    warm, _, _ = sail_implicit_step_np(a, C, c, mask, 3.0, fixed, human, start=x + 1e-4)
+    np.testing.assert_allclose(warm, x, rtol=0, atol=1e-12)
+    assert np.array_equal(warm[fixed], human[fixed])     # the human block starts and stays at the human's
+    for bad in (x[:, :3], np.full_like(x, np.nan)):
+        with pytest.raises(ValueError, match="start"):
+            sail_implicit_step_np(a, C, c, mask, 3.0, fixed, human, start=bad)
 
 
 @pytest.mark.parametrize("seed", range(4))

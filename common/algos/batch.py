@@ -57,6 +57,9 @@ class Minibatch:
     sail_Cn: Tensor | None = None
     sail_cn: Tensor | None = None
     sail_keep: Tensor | None = None
+    # the actors' proposal center a_bar [B, D] where the batch has it: where the learner's SAIL
+    # solves start their Newton loop (None: at a_ST; dropped by the methods that solve none)
+    a_bar: Tensor | None = None
 
     @property
     def a_robot(self) -> Tensor:
@@ -112,7 +115,9 @@ def check_batch(batch: dict[str, np.ndarray], n_agents: int, obs_dim: int, needs
     if np.shape(batch["last_obs"]) != (K, n_agents, obs_dim):
         raise ValueError(f"batch['last_obs'] has shape {np.shape(batch['last_obs'])}, "
                          f"expected {(K, n_agents, obs_dim)}")
-    for key in ("obs", "a_prop", "logp", "reward", "C", "c"):
+    if "a_bar" in batch and np.shape(batch["a_bar"]) != np.shape(batch["a_prop"]):
+        raise ValueError(f"batch['a_bar'] has shape {np.shape(batch['a_bar'])}, expected {np.shape(batch['a_prop'])}")
+    for key in ("obs", "a_prop", "logp", "reward", "C", "c") + (("a_bar",) if "a_bar" in batch else ()):
         if not np.all(np.isfinite(batch[key])):
             raise ValueError(f"batch[{key!r}] contains NaN/Inf")
     return dims
@@ -176,6 +181,7 @@ def prepare_batch(batch: dict[str, np.ndarray], critic: TeamCritic, value_norm: 
         adv=adv_t.reshape(B),
         ret=ret_norm.reshape(B),
         active=~fixed.view(B, n_agents, CARRIER_ACT_DIM).any(-1),
+        a_bar=torch.as_tensor(np.asarray(batch["a_bar"]), dtype=f64).reshape(B, -1) if "a_bar" in batch else None,
     ).with_density_terms()
     return data, batch_diagnostics(batch, adv, ret)
 

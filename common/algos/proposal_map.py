@@ -10,6 +10,7 @@ action, the stored a_prop there; log-ratio 0 on those blocks).
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -96,13 +97,16 @@ class ProposalMap:
         if not self.uses_sail or self.sail_grad == "unrolled":
             return None
         return sail_step(a_st, mb.C, mb.c, mb.row_mask, kappa, mb.fixed, mb.a_prop, self.sail_config,
-                         rows=mb.sail_rows)
+                         rows=mb.sail_rows, start=mb.a_bar)
 
     def prepared(self, data: Minibatch) -> Minibatch:
-        """``data`` with what every solve of its minibatches reuses: SAIL's prepared rows
-        where the center is the implicit SAIL map."""
+        """``data`` with what every solve of its minibatches reuses where the center is the
+        implicit SAIL map: SAIL's prepared rows, and the actors' solutions a_bar as the
+        solves' warm start (the policy moves little within an update, so the loop from
+        there mostly ends on its first step; the answer is the same to rounding,
+        ``sail_implicit_step_np``). Elsewhere without a_bar, which no solve reads."""
         if not self.uses_sail or self.sail_grad == "unrolled":
-            return data
+            return dataclasses.replace(data, a_bar=None)
         return data.with_sail_rows(self.sail_config)
 
     def center(self, mb: Minibatch, a_st: Tensor, kappa: float, step: SailStep | None = None) -> Tensor:

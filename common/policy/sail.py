@@ -231,11 +231,14 @@ def sail_rows_np(C, c, mask, fixed_mask, fixed_action, config: SailConfig = _DEF
 
 
 def sail_implicit_step_np(a_st, C, c, mask, kappa, fixed_mask, fixed_action,
-                          config: SailConfig = _DEFAULT, rows=None):
+                          config: SailConfig = _DEFAULT, rows=None, start=None):
     """The learner's implicit SAIL step at the actors' solution: ``(x_star, H_inv, offset)``
     (see ``sail_center_implicit``). ``x_star`` is ``sail_project_np``'s answer for these
     inputs (the same prepared rows and kernel, so the same bits). ``rows``: ``sail_rows_np``'s
-    answer for these C, c, mask and human block, if already prepared."""
+    answer for these C, c, mask and human block, if already prepared. ``start`` [B, d]: a
+    warm start for the Newton loop (the actors' solution at the behaviour parameters; human
+    blocks start at the human's action); then x* is that answer to rounding wherever the loop
+    converges (``sail_kernels.sail_newton_implicit``) and the same bits where it does not."""
     if rows is None:
         a, Cn, cn, keep, kappa, n_newton, damping = _prepare_np(
             a_st, C, c, mask, kappa, None, None, fixed_mask, fixed_action, config)
@@ -246,7 +249,13 @@ def sail_implicit_step_np(a_st, C, c, mask, kappa, fixed_mask, fixed_action,
         kappa = _kappa_per_sample(kappa, a.shape[0])
         a = np.where(np.asarray(fixed_mask, dtype=bool), np.asarray(fixed_action, dtype=np.float64), a)
         (Cn, cn, keep), n_newton, damping = rows, config.n_newton, config.damping
-    return sail_newton_implicit(*_kernel_args(a, Cn, cn, keep, kappa), n_newton, damping == "exact")
+    x0 = np.empty((0, a.shape[1]))
+    if start is not None:
+        x0 = np.asarray(start, dtype=np.float64)
+        if x0.shape != a.shape or not np.all(np.isfinite(x0)):
+            raise ValueError(f"sail: start must be finite and shaped like a_st {a.shape}, got {x0.shape}")
+        x0 = np.where(np.asarray(fixed_mask, dtype=bool), a, x0) if fixed_mask is not None else np.array(x0)
+    return sail_newton_implicit(*_kernel_args(a, Cn, cn, keep, kappa), n_newton, damping == "exact", x0)
 
 
 # ----------------------------------------------------------------------------- torch (differentiable)
@@ -352,15 +361,17 @@ class SailStep:
 
 
 def sail_step(a_st: torch.Tensor, C: torch.Tensor, c: torch.Tensor, mask: torch.Tensor, kappa: float,
-              fixed: torch.Tensor, human: torch.Tensor, config: SailConfig, rows=None) -> SailStep:
+              fixed: torch.Tensor, human: torch.Tensor, config: SailConfig, rows=None,
+              start: torch.Tensor | None = None) -> SailStep:
     """The actors' solve at ``a_st`` and the implicit step there (``sail_implicit_step_np``;
-    ``rows``: the prepared rows as tensors, if already prepared)."""
+    ``rows``: the prepared rows as tensors, if already prepared; ``start``: a warm start)."""
     import torch
 
     x_np, H_inv, offset = sail_implicit_step_np(
         a_st.detach().double().cpu().numpy(), C.detach().cpu().numpy(), c.detach().cpu().numpy(),
         mask.cpu().numpy(), kappa, fixed.cpu().numpy(), human.detach().cpu().numpy(), config,
-        rows=None if rows is None else tuple(r.cpu().numpy() for r in rows))
+        rows=None if rows is None else tuple(r.cpu().numpy() for r in rows),
+        start=None if start is None else start.detach().double().cpu().numpy())
     return SailStep(*(torch.as_tensor(v, dtype=torch.float64, device=a_st.device) for v in (x_np, H_inv, offset)))
 
 

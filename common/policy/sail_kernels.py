@@ -194,17 +194,17 @@ def _kept_rows(Cn_b, cn_b, keep_b, Ck, ck):
 
 
 @njit(cache=True, inline="always")
-def _newton_sample(ab, Ck, ck, m, kap, n_newton, exact_damping, x, resid, act, ia, s, tb, valid,
+def _newton_sample(ab, x0, Ck, ck, m, kap, n_newton, exact_damping, x, resid, act, ia, s, tb, valid,
                    g, dx, y, H, L, z, r_y):
     """The damped Newton loop of ``reference.sail_project`` for one sample (kept rows
-    ``Ck[:m]``, ``ck[:m]``), from x = ``ab`` (overwritten with the iterate). Returns the
+    ``Ck[:m]``, ``ck[:m]``, target ``ab``), from x = ``x0`` (``x`` holds the iterate). Returns the
     number of active rows ``na`` if the loop ended on an exact step (the full step kept the
     active set, so x is that piece's minimizer), -1 if it ran out of steps. On an exact
     exit the active rows at x are ``ia[:na]`` (in order), ``r_y[:m]`` the residuals there,
     and ``L`` (where na > 0) the Cholesky factor of H = I + kappa C_A^T C_A over them."""
     d = x.shape[0]
     for k in range(d):
-        x[k] = ab[k]
+        x[k] = x0[k]
     for _ in range(n_newton):
         _residuals(Ck, ck, m, x, resid)
         na = 0
@@ -265,8 +265,8 @@ def sail_newton(a, Cn, cn, keep, kappa, n_newton, exact_damping):
     Ck, ck, resid, act, ia, s, tb, valid, g, dx, y, H, L, z, r_y = _workspace(M, d)
     for b in range(B):
         m = _kept_rows(Cn[b], cn[b], keep[b], Ck, ck)
-        _newton_sample(a[b], Ck, ck, m, kappa[b], n_newton, exact_damping, out[b], resid, act, ia, s, tb, valid,
-                       g, dx, y, H, L, z, r_y)
+        _newton_sample(a[b], a[b], Ck, ck, m, kappa[b], n_newton, exact_damping, out[b], resid, act, ia, s, tb,
+                       valid, g, dx, y, H, L, z, r_y)
     return out
 
 
@@ -348,23 +348,35 @@ def sail_implicit_step(x_star, Cn, cn, keep, kappa):
 
 
 @njit(cache=True, nogil=True)
-def sail_newton_implicit(a, Cn, cn, keep, kappa, n_newton, exact_damping):
+def sail_newton_implicit(a, Cn, cn, keep, kappa, n_newton, exact_damping, x0):
     """``sail_newton`` and ``sail_implicit_step`` at its answer in one pass, the same bits:
     where the loop ends on an exact step the rows active at x* are the last step's (that is
     what exact means), so H, its Cholesky factor and the residuals there are the ones the
     loop just computed, in the same order; otherwise (out of steps) they are computed
-    afresh at x* as ``sail_implicit_step`` does. Returns (x [B,d], H_inv [B,d,d], offset [B,d])."""
+    afresh at x* as ``sail_implicit_step`` does. Returns (x [B,d], H_inv [B,d,d], offset [B,d]).
+
+    ``x0`` [B,d]: where each sample's loop starts (a warm start, e.g. the solution at nearby
+    a); empty [0,d]: at ``a``, as ``sail_newton``. A warm start is kept only where its loop
+    ends on an exact step (then x* is the minimizer, the same as from ``a`` to rounding, in
+    fewer steps); elsewhere the sample is solved again from ``a``, so that a budget that
+    runs out leaves ``sail_newton``'s own iterate."""
     B, M, d = Cn.shape
     out = np.empty((B, d))
     H_inv = np.empty((B, d, d))
     offset = np.empty((B, d))
     Li = np.empty((d, d))
     Ck, ck, resid, act, ia, s, tb, valid, g, dx, y, H, L, z, r_y = _workspace(M, d)
+    warm = x0.shape[0] == B and B > 0
     for b in range(B):
         kap = kappa[b]
         m = _kept_rows(Cn[b], cn[b], keep[b], Ck, ck)
-        na = _newton_sample(a[b], Ck, ck, m, kap, n_newton, exact_damping, out[b], resid, act, ia, s, tb, valid,
-                            g, dx, y, H, L, z, r_y)
+        na = -1
+        if warm:
+            na = _newton_sample(a[b], x0[b], Ck, ck, m, kap, n_newton, exact_damping, out[b], resid, act, ia, s, tb,
+                                valid, g, dx, y, H, L, z, r_y)
+        if na < 0:
+            na = _newton_sample(a[b], a[b], Ck, ck, m, kap, n_newton, exact_damping, out[b], resid, act, ia, s, tb,
+                                valid, g, dx, y, H, L, z, r_y)
         if na >= 0:
             _step_constants(out[b], Ck, r_y, ia, na, kap, H, L, Li, True, H_inv[b], offset[b])
         else:
