@@ -78,8 +78,8 @@ def gap_diagnostics(proposal: ProposalMap, mb: Minibatch, tau: float, kappa: flo
     a_st, step, behaviour, start = proposal.start_point(mb, tau, kappa)
     g_ind, g_team, w, _ = proposal.gap(a_st, start, with_hvp=False)
     g_behaviour = g_ind if start is behaviour else proposal.individual_gradient(behaviour)
-    a_st = a_st.detach().clone()
-    return GapAtStart.of(g_ind, g_team, w, a_st, start), StartPoint(a_st, step, behaviour, g_behaviour)
+    a_st = a_st.detach()   # the HAPPO step refreshes its copy block by block
+    return GapAtStart.of(g_ind, g_team, w, a_st, start), StartPoint(a_st.clone(), step, behaviour, g_behaviour)
 
 
 def logratio_at_start(data: Minibatch) -> float:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -210,6 +211,22 @@ class ProposalMap:
         forward)."""
         values, log_ratios = self.surrogates_at(mb, a_st, log_std, kappa, step, (mb.logp_old,))
         return log_ratios[0, :, i].detach(), values[0, i]
+
+    def carrier_gradient(self, mb: Minibatch, a_st: Tensor, kappa: float, step: SailStep | None, i: int,
+                         forest) -> tuple[Tensor, Tensor, Tensor]:
+        """``carrier_surrogate``'s log-ratio [B] and L_i, and its gradient in theta_i (flat, carrier
+        i's W, b, K, beta, log_std) in closed form: the chain at ``a_st`` (partners' blocks
+        constant, as there) and tree i's VJP from ``forest``, the tape of a forward at which
+        tree i had its current parameters (HAPPO's carriers before their turn: the step's
+        start point). No autograd graph."""
+        N = self.n_agents
+        values, log_ratios, chain = surrogate_chain.chain_surrogates_taped(
+            a_st, self.log_std(), mb, step, (mb.logp_old,), self.clip)
+        sets = np.zeros((N, 1, N + 1))    # L_i on carrier i's block only (the others' sets empty)
+        sets[i, 0, i] = 1.0
+        g = gradient(Taped(forest, chain), sets, self.layout)
+        per = g.numel() // N
+        return log_ratios[0, :, i], values[0, i], g[per * i:per * (i + 1)]
 
     def gap(self, a_st: Tensor, s: Surrogates, with_hvp: bool):
         """Eq. (talo_gap) on surrogates ``s`` built on the forward that produced ``a_st``:

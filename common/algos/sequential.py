@@ -83,6 +83,14 @@ def happo_step(learner, mb: Minibatch, tau: float, kappa: float, order: list[int
             for p, g in zip(groups[i], grads):
                 p.grad = -g                  # ascent on L_i -> descent for Adam
             surr = surr.detach()
+        elif start is not None and start.behaviour.taped is not None:
+            # tree i still has the start point's parameters: its tape serves, and L_i's
+            # gradient (advantage scaled by M) is the closed form at the refreshed chain
+            log_ratio, surr, g_i = proposal.carrier_gradient(dataclasses.replace(mb, adv=mb.adv * factor),
+                                                             a_st_cache, kappa, step_cache, i,
+                                                             start.behaviour.taped.forest)
+            for p, g in zip(groups[i], unflatten_like(g_i, groups[i])):
+                p.grad = -g
         else:
             own = tree(mb.obs[:, i], tau).action
             a_st = torch.cat([a_st_cache[:, :block.start], own, a_st_cache[:, block.stop:]], dim=-1)
