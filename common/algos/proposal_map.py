@@ -124,13 +124,9 @@ class ProposalMap:
 
     def start_log_prob(self, data: Minibatch, tau: float, kappa: float) -> Tensor:
         """log pi_theta(a_prop) [B, N] at the current parameters, without a graph: the
-        snapshot of the update's start policy that the diagnostics' ratios divide by. The
-        trees' forward is the one ``start_point`` takes (the compiled kernel where
-        ``closed_form``, as the actors' twin), so on-policy the snapshot equals the behaviour
-        log-density bitwise and every minibatch's two references agree (one gap, not two)."""
+        snapshot of the update's start policy that the diagnostics' ratios divide by."""
         with torch.no_grad():
-            a_st = self.policy.taped(data.obs, tau).action if self.closed_form \
-                else self.tree_actions(data, tau, grad=False)
+            a_st = self.tree_actions(data, tau, grad=False)
             center = self.center(data, a_st, kappa, step=self.sail_step(data, a_st, kappa))
             return proposal_log_prob(center, self.log_std(), data.a_robot, terms=data.density_terms).detach()
 

@@ -21,7 +21,9 @@ Likewise the gradient and H sum over the active rows only (in row order), and wi
 active row the solve is skipped: H = I, and dx = -grad is what the solve gives exactly.
 ``sail_implicit_step`` gives the learner the constants of its implicit step at a solution
 x* (``sail.sail_center_implicit``): H^{-1} over the rows active at x*, from the same
-Cholesky factor, and x* - kappa C_J^T r_J.
+Cholesky factor, and x* - kappa C_J^T r_J. ``sail_newton_implicit``, what the learner
+calls, is the loop and those constants in one pass (the last exact step's factor is the one
+needed), optionally from a warm start.
 
 ``sail_prepare`` is the row preparation both solvers start from (fixed columns absorbed,
 rows normalized), one pass instead of numpy's dozen calls.
