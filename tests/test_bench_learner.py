@@ -12,3 +12,9 @@ def test_bench_learner_reports_the_cost_per_sample():
     cs = out["critic_step"]   # the same run's A/B of the critic step, on the bench's minibatch
     assert cs["minibatch"] == 8 // 2 and cs["autograd_us"] > 0 and cs["written_us"] > 0
     assert cs["written_over_autograd"] > 0
+    # the update's critic floor: its 8 steps' matrix products alone, per sample
+    assert cs["gemms_us"] > 0 and cs["written_over_gemms"] > 0
+    assert out["critic_gemm_floor_us_per_sample"] == pytest.approx(cs["gemms_us"] * out["epochs"] * 2 / 8)
+    m = out["machine"]   # what the figures were measured on
+    assert m["cpus_available"] >= 1 and m["cpu_model"] and m["torch_cpu_capability"]
+    assert set(m["versions"]) == {"python", "numpy", "torch", "mujoco"}

@@ -10,6 +10,7 @@ from common.env.batch_env import BatchEnv
 from common.env.config import EnvConfig
 from common.env.metrics import aggregate
 from common.env.scenarios import SCENARIOS
+from sage.bench.machine import machine
 from sage.errors import nonneg_int, positive_int
 
 
@@ -122,7 +123,7 @@ def bench_env(scenario: str = "maze", num_envs: int = 16, steps: int = 100, seed
             "physics_steps_per_env": steps * n_sub, "repeats": repeats,
             "env_steps_per_s": env_sps, "raw_physics_env_steps_per_s": raw_sps, "ratio": ratio,
             "ratios": [r[0] / r[1] for r in rounds],
-            "ratio_cpu": statistics.median(r[2] for r in rounds)}
+            "ratio_cpu": statistics.median(r[2] for r in rounds), "machine": machine()}
 
 
 def bench_scripted(episodes: int = 20, scenarios=None, seed: int = 0, num_envs: int = 10) -> dict:

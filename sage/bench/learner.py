@@ -10,11 +10,13 @@ import time
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from common.algos.config import AlgoConfig
 from common.algos.methods import make_method
 from common.algos.synthetic import BanditTask, collect
 from common.env.observations import OBS_DIM
+from sage.bench.machine import machine
 from sage.errors import nonneg_int, positive_int
 
 BENCH_METHODS = ("happo", "sail_cbf", "talo_cbf", "sage")
@@ -59,6 +61,9 @@ def bench_learner(T: int = 64, K: int = 32, obs_dim: int | None = None, rows: in
             times[name].append(time.perf_counter() - t0)
             cpu[name].append(time.thread_time() - c0)
     update_s = {k: statistics.median(v) for k, v in times.items()}
+    minibatches = min(cfg.minibatches, T * K)
+    steps = cfg.epochs * minibatches                        # critic steps per update
+    critic_step = critic_step_ab(learners["happo"][0], T * K // minibatches)
     update_cpu_s = {k: statistics.median(v) for k, v in cpu.items()}
     return {
         "bench": "learner",
@@ -77,16 +82,21 @@ def bench_learner(T: int = 64, K: int = 32, obs_dim: int | None = None, rows: in
         "sage_within_target": (update_cpu_s["sage"] / update_cpu_s["happo"] <= TARGET_RATIO)
         if "sage" in update_cpu_s else None,
         "w_gap": {k: d.get("w_gap") for k, d in last_diag.items()},
-        "critic_step": critic_step_ab(learners["happo"][0], T * K // min(cfg.minibatches, T * K)),
+        "critic_step": critic_step,
+        # the paper critic's arithmetic in an update: its steps' matrix products alone
+        "critic_gemm_floor_us_per_sample": critic_step["gemms_us"] * steps / (T * K),
+        "machine": machine(),
     }
 
 
 def critic_step_ab(method, minibatch: int, blocks: int = 20, steps: int = 10) -> dict:
     """The learner's critic step (written-out gradient) against the autograd reference
-    step (``TeamCritic.forward``, ``backward``), each with the same clip and Adam, on one
-    random minibatch of ``minibatch`` samples: thread CPU per step in alternating blocks of ``steps``,
-    and the median of the per-block-pair ratios (what a change in the machine's speed
-    moves least). Runs on a copy of the critic; ``method`` is untouched."""
+    step (``TeamCritic.forward``, ``backward``), each with the same clip and Adam, and
+    against the step's matrix products alone (``critic_gemms``: its arithmetic at this
+    machine's GEMM rate), on one random minibatch of ``minibatch`` samples: thread CPU per
+    step in rotating blocks of ``steps``, and the medians of the per-round ratios (what a
+    change in the machine's speed moves least). Runs on a copy of the critic; ``method`` is
+    untouched."""
     import copy
 
     from common.algos.adam import Adam
@@ -104,21 +114,56 @@ def critic_step_ab(method, minibatch: int, blocks: int = 20, steps: int = 10) ->
     def step(by_autograd: bool):
         return lambda: value_step(critic, opt, obs, state, target, cfg.vf_coef, cfg.max_grad_norm, by_autograd)
 
-    cpu = {"autograd": [], "written": []}
-    steps_of = {"autograd": step(True), "written": step(False)}
+    steps_of = {"autograd": step(True), "written": step(False), "gemms": critic_gemms(critic, obs, state)}
+    cpu: dict[str, list[float]] = {name: [] for name in steps_of}
     for f in steps_of.values():
         f()                                                   # warm-up
+    names = list(steps_of)
     for b in range(blocks):
-        for name in (("autograd", "written") if b % 2 == 0 else ("written", "autograd")):
+        for name in names[b % 3:] + names[:b % 3]:
             c0 = time.thread_time()
             for _ in range(steps):
                 steps_of[name]()
             cpu[name].append((time.thread_time() - c0) / steps)
-    ratios = [w / a for w, a in zip(cpu["written"], cpu["autograd"]) if a > 0]
+
+    def ratio(num: str, den: str):
+        r = [n / d for n, d in zip(cpu[num], cpu[den]) if d > 0]
+        return statistics.median(r) if r else None
+
     return {"minibatch": B, "blocks": blocks,
             "autograd_us": 1e6 * statistics.median(cpu["autograd"]),
             "written_us": 1e6 * statistics.median(cpu["written"]),
-            "written_over_autograd": statistics.median(ratios) if ratios else None}
+            "gemms_us": 1e6 * statistics.median(cpu["gemms"]),
+            "written_over_autograd": ratio("written", "autograd"),
+            "written_over_gemms": ratio("written", "gemms")}
+
+
+def critic_gemms(critic, obs: Tensor, state: Tensor | None):
+    """A function running the matrix products of one written-out critic step
+    (``TeamCritic.value_loss_and_grads``: five forward ``addmm``, nine backward ``mm``) at its
+    shapes, on activations and cotangents fixed once: no tanh, no loss, no optimizer. Its
+    time is the step's floor at this machine's GEMM rate."""
+    with torch.no_grad():
+        layers = critic._layers()
+        x0, a1, a2, inp, h1, h2, _ = critic._forward_parts(obs, state, layers)
+    (w1, b1), (w2, b2), (u1, c1), (u2, c2), (u3, c3) = layers
+    B, N = obs.shape[0], critic.n_agents
+    z0, latent = N * critic.obs_dim, w2.shape[0]
+    g_v = torch.ones(B, 1)
+    g_a2 = torch.ones(B * N, latent)
+
+    def gemms():
+        torch.addmm(b1, x0, w1.t()), torch.addmm(b2, a1, w2.t())
+        torch.addmm(c1, inp, u1.t()), torch.addmm(c2, h1, u2.t()), torch.addmm(c3, h2, u3.t())
+        g = g_v.mm(u3)
+        g_v.t().mm(h2), g.t().mm(h1)
+        g = g.mm(u2)
+        g.t().mm(inp), g.mm(u1[:, z0:z0 + latent])
+        g_a2.t().mm(a1)
+        g = g_a2.mm(w2)
+        g.t().mm(x0)
+
+    return gemms
 
 
 # ----------------------------------------------------------------- command line
@@ -153,5 +198,9 @@ def _bench_handler(args) -> int:
         print(f"  target: {out['target']}: {'met' if out['sage_within_target'] else 'not met'}")
         cs = out["critic_step"]
         print(f"  critic step ({cs['minibatch']} samples): written-out {cs['written_us']:.0f} us, "
-              f"autograd {cs['autograd_us']:.0f} us, ratio {cs['written_over_autograd']:.2f} (median of {cs['blocks']} blocks)")
+              f"autograd {cs['autograd_us']:.0f} us, ratio {cs['written_over_autograd']:.2f}; its matrix products "
+              f"alone {cs['gemms_us']:.0f} us (written-out / them {cs['written_over_gemms']:.2f}; medians of "
+              f"{cs['blocks']} blocks): the update's critic floor {out['critic_gemm_floor_us_per_sample']:.1f} us/sample")
+        m = out["machine"]
+        print(f"  machine: {m['cpu_model']}, {m['cpus_available']} CPUs, torch {m['torch_cpu_capability']}")
     return 0

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import time
 from dataclasses import dataclass
 
@@ -17,6 +16,7 @@ import numpy as np
 
 from common.shield.qp import BACKENDS, DEFAULT_BACKEND, qp_violation, solve_cbf_qp
 from common.shield.random_problems import random_cbf_problems
+from sage.bench.machine import machine
 from sage.errors import nonneg_int, positive_int
 
 TARGET_US_PER_QP = 20.0  # issue 2: default backend, batch 256, one core
@@ -114,7 +114,7 @@ def run_qp_bench(cfg: QPBenchConfig) -> dict:
         "numba_compile_excluded": True,
         "warmup": "one untimed call per backend (numba compile or cache load) before timing",
         "osqp_loop_settings": "osqp.OSQP(); setup(..., verbose=False) defaults; solve() per QP",
-        "machine": platform.processor() or platform.machine(),
+        "machine": machine(),
     }
 
 

@@ -16,6 +16,7 @@ from pathlib import Path
 from common.transport import Bus
 from deploy.supervised_run import router_spec, service_specs
 from deploy.supervisor import ServiceSpec, free_tcp_port
+from sage.bench.machine import machine
 from sage.bench.system import actor_ratio, param_broadcast, shield_rtt
 from sage.bench.system.config import RATIO_TARGET
 from sage.bench.system.cpu import host_cpus
@@ -85,7 +86,7 @@ class SystemBench(Harness):
     def run(self) -> dict:
         t0 = time.monotonic()
         out = {"bench": "system", "config": asdict(self.cfg),
-               "host": {"cpus": host_cpus()}}
+               "host": {"cpus": host_cpus()}, "machine": machine()}
         try:
             # the bound at the start (each system phase measures its own around it)
             out["physics_bound_env_steps_per_s"] = self.measure_physics_bound()
