@@ -2,8 +2,8 @@
 CPUs this process may use and the versions of what does the arithmetic.
 
 Figures in microseconds move with the hardware, not only with the code: the same commit
-measured 2.2x apart on two hosts of this workplace, one with AVX-512 and one without
-(docs/scaling.md, "2026-12-08"). Every bench's JSON carries this block so that two figures
+measured 2.2x apart on two hosts of this workplace (docs/scaling.md, "2026-12-08"), and
+numpy's float32 tanh 17x apart. Every bench's JSON carries this block so that two figures
 are compared only where it matches."""
 from __future__ import annotations
 
