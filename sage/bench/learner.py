@@ -4,6 +4,7 @@ machine). Thread CPU time is the figure of merit: on a loaded machine wall time
 also counts the time the learner waited for a core."""
 from __future__ import annotations
 
+import copy
 import json
 import statistics
 import time
@@ -32,7 +33,9 @@ def bench_learner(T: int = 64, K: int = 32, obs_dim: int | None = None, rows: in
                   repeats: int = 3, methods=BENCH_METHODS, threads: int = 1, seed: int = 0,
                   progress: float = 0.5) -> dict:
     """Median thread CPU and wall seconds per ``update`` (after one warm-up
-    update) for each method, their ratios to happo and samples per second."""
+    update) for each method, their ratios to happo and samples per second. Every update
+    (the warm-up and each timed one) starts from the method's state that collected the
+    batch."""
     if T < 1 or K < 1 or repeats < 1 or rows < 1:
         raise ValueError("bench learner: T, K, rows and repeats must be >= 1")
     if "happo" not in methods:
@@ -48,14 +51,18 @@ def bench_learner(T: int = 64, K: int = 32, obs_dim: int | None = None, rows: in
         method = make_method(name, cfg, obs_dim, obs_dim * 3)
         # same contexts for every method (same rng seed); proposals are each method's own
         batch = collect(method, task, T, K, progress, np.random.default_rng(seed))
+        # every update starts from the state that collected the batch, as each of training's
+        # does: the same work every repeat, none on a batch its policy has drifted from
+        start = copy.deepcopy(method.state_dict())
         method.update(batch, progress)                      # warm-up
-        learners[name] = method, batch
+        learners[name] = method, batch, start
     times: dict[str, list[float]] = {name: [] for name in methods}
     cpu: dict[str, list[float]] = {name: [] for name in methods}   # thread CPU: robust under load
     last_diag: dict[str, dict] = {}
     for _ in range(repeats):
         # round robin, so that a change in the machine's load hits every method alike
-        for name, (method, batch) in learners.items():
+        for name, (method, batch, start) in learners.items():
+            method.load_state_dict(start)
             t0, c0 = time.perf_counter(), time.thread_time()
             last_diag[name] = method.update(batch, progress)
             times[name].append(time.perf_counter() - t0)
@@ -97,7 +104,6 @@ def critic_step_ab(method, minibatch: int, blocks: int = 20, steps: int = 10) ->
     step in rotating blocks of ``steps``, and the medians of the per-round ratios (what a
     change in the machine's speed moves least). Runs on a copy of the critic; ``method`` is
     untouched."""
-    import copy
 
     from common.algos.adam import Adam
     from common.algos.critic import value_step
