@@ -37,5 +37,7 @@ def test_every_timed_update_starts_where_the_batch_was_collected():
         task = BanditTask(obs_dim=8, seed=3, n_rows=4, human_rate=0.05)
         batch = collect(method, task, 2, 4, 0.5, np.random.default_rng(3))
         first = method.update(batch, 0.5)["w_gap"]
-        assert out["w_gap"][name] == first
-        assert method.update(batch, 0.5)["w_gap"] != first     # a chained update differs
+        # to rounding (a BLAS may round differently with the buffers' alignment); a chained
+        # update's differs by 9-48% here
+        assert out["w_gap"][name] == pytest.approx(first, rel=1e-9)
+        assert method.update(batch, 0.5)["w_gap"] != pytest.approx(first, rel=1e-3)
