@@ -11,7 +11,7 @@ import sys
 import pytest
 import torch
 
-from common.algos.adam import Adam
+from common.algos.adam import Adam, clip_grad_norm
 
 
 def make_params(seed: int, dtype=torch.float32) -> list[torch.Tensor]:
@@ -116,3 +116,40 @@ def test_learner_never_imports_torch_dynamo():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "False"
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1.0, 1e3])   # below, near and above the clip
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_clip_is_torchs_bit_for_bit(scale, dtype):
+    """clip_grad_norm against torch.nn.utils.clip_grad_norm_ on the same gradients: the
+    same total norm and the same clipped gradients, bit for bit; a parameter without a
+    gradient is left alone by both."""
+    ours, ref = make_params(3, dtype), make_params(3, dtype)
+    for a, b, g in zip(ours, ref, grads_for(2, ours, seed=5)):   # step 2: one gradient is None
+        a.grad = None if g is None else g * scale
+        b.grad = None if g is None else g.clone() * scale
+    total = clip_grad_norm(ours, 0.5)
+    expected = torch.nn.utils.clip_grad_norm_(ref, 0.5)
+    assert torch.equal(total, expected)
+    assert (float(total) > 0.5) == (scale >= 1.0)
+    for a, b in zip(ours, ref):
+        assert (a.grad is None) == (b.grad is None)
+        if a.grad is not None:
+            assert torch.equal(a.grad, b.grad)
+
+
+def test_the_clip_of_mixed_dtypes_is_torchs():
+    """Gradients of two dtypes take torch's own function (its grouping decides the bits)."""
+    ours = make_params(4, torch.float32)[:2] + make_params(4, torch.float64)[2:]
+    ref = [p.detach().clone().requires_grad_() for p in ours]
+    for a, b in zip(ours, ref):
+        a.grad = torch.full_like(a, 3.0)
+        b.grad = torch.full_like(b, 3.0)
+    assert torch.equal(clip_grad_norm(ours, 1.0), torch.nn.utils.clip_grad_norm_(ref, 1.0))
+    for a, b in zip(ours, ref):
+        assert torch.equal(a.grad, b.grad)
+
+
+def test_no_gradients_clip_nothing():
+    params = make_params(5)
+    assert float(clip_grad_norm(params, 1.0)) == 0.0

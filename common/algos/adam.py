@@ -11,7 +11,8 @@ the learner builds its optimizers (the figures, before and after, are in
 docs/scaling.md, "The learner starts in ..."). The update
 runs as one multi-tensor (``torch._foreach_*``) op per line over all the
 parameters, which also costs less than ``torch.optim.Adam(fused=True)`` at
-these tensor sizes.
+these tensor sizes. ``clip_grad_norm``, the clip before every step, is torch's
+``clip_grad_norm_`` written out the same way.
 """
 from __future__ import annotations
 
@@ -110,3 +111,22 @@ class Adam:
             exp_avg_sq[i] = s["exp_avg_sq"].to(p.dtype).clone()
         self.lr, self.betas, self.eps = float(group["lr"]), tuple(map(float, group["betas"])), float(group["eps"])
         self.steps, self.exp_avg, self.exp_avg_sq = steps, exp_avg, exp_avg_sq
+
+
+@torch.no_grad()
+def clip_grad_norm(params: Iterable[Tensor], max_norm: float) -> Tensor:
+    """``torch.nn.utils.clip_grad_norm_(params, max_norm)`` (2-norm, its multi-tensor path)
+    written out: the same kernels in the same order, so the same bits (tests/test_adam.py),
+    without the per-call grouping of the gradients by device and dtype, which cost about as
+    much as the arithmetic at the learner's sizes (docs/scaling.md, "2026-12-08"). Returns
+    the total norm before clipping. Gradients of mixed dtypes or off the CPU go to torch's."""
+    params = list(params)
+    grads = [p.grad for p in params if p.grad is not None]
+    if not grads:
+        return torch.tensor(0.0)
+    first = grads[0]
+    if first.device.type != "cpu" or any(g.dtype != first.dtype or g.device != first.device for g in grads):
+        return torch.nn.utils.clip_grad_norm_(params, max_norm)
+    total = torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads, 2.0)), 2.0)
+    torch._foreach_mul_(grads, torch.clamp(float(max_norm) / (total + 1e-6), max=1.0))
+    return total

@@ -6,6 +6,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from common.algos.adam import clip_grad_norm
+
 
 class TeamCritic(nn.Module):
     """``V_omega(o, z)`` with ``z = mean_i psi_phi(o_i)`` (Eq. team_context).
@@ -122,7 +124,7 @@ def value_step(critic: TeamCritic, opt, obs: Tensor, state: Tensor | None, targe
         loss, grads = critic.value_loss_and_grads(obs, state, target, coef)
         for p, g in zip(critic.parameters(), grads):
             p.grad = g
-    nn.utils.clip_grad_norm_(critic.parameters(), max_grad_norm)
+    clip_grad_norm(critic.parameters(), max_grad_norm)
     opt.step()
     return float(loss.detach())
 

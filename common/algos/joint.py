@@ -13,8 +13,8 @@ itself meets Eq. (talo_condition).
 from __future__ import annotations
 
 import torch
-from torch import nn
 
+from common.algos.adam import clip_grad_norm
 from common.algos.batch import Minibatch
 from common.algos.diagnostics import GapAtStart, snapshot, talo_condition
 from common.algos.talo import flat_grad, talo_project, unflatten_like
@@ -57,7 +57,7 @@ def joint_step(learner, mb: Minibatch, tau: float, kappa: float) -> tuple[dict[s
     else:
         for p, d in zip(params, unflatten_like(g, params)):
             p.grad = -d.detach().clone()      # ascent on surrogates -> descent for Adam
-        grad_norm = float(nn.utils.clip_grad_norm_(params, cfg.max_grad_norm))
+        grad_norm = float(clip_grad_norm(params, cfg.max_grad_norm))
         for opt in learner.actor_opts:
             opt.step()
     if learner.uses_talo:

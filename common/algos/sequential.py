@@ -19,8 +19,8 @@ import dataclasses
 
 import numpy as np
 import torch
-from torch import nn
 
+from common.algos.adam import clip_grad_norm
 from common.algos.batch import Minibatch
 from common.algos.diagnostics import GapAtStart, gap_diagnostics
 from common.algos.proposal_map import StartPoint
@@ -101,7 +101,7 @@ def happo_step(learner, mb: Minibatch, tau: float, kappa: float, order: list[int
         entropy = proposal_entropy(log_std)[i]
         loss = -(surr + cfg.ent_coef * entropy)
         loss.backward()                      # adds to a reused gradient
-        norms.append(float(nn.utils.clip_grad_norm_(groups[i], cfg.max_grad_norm)))
+        norms.append(float(clip_grad_norm(groups[i], cfg.max_grad_norm)))
         learner.actor_opts[i].step()
         stats = proposal.ratio_stats(log_ratio[:, None], active[:, None])
         losses.append(float(loss.detach())); ents.append(float(entropy.detach()))
