@@ -104,7 +104,6 @@ def critic_step_ab(method, minibatch: int, blocks: int = 20, steps: int = 10) ->
     step in rotating blocks of ``steps``, and the medians of the per-round ratios (what a
     change in the machine's speed moves least). Runs on a copy of the critic; ``method`` is
     untouched."""
-
     from common.algos.adam import Adam
     from common.algos.critic import value_step
 

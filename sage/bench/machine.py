@@ -12,7 +12,7 @@ import platform
 
 import numpy as np
 
-# numpy's dispatch targets worth naming, highest first (its __cpu_features__ keys)
+# numpy's dispatch targets worth naming (its __cpu_features__ keys; x86, then Arm)
 _SIMD_FEATURES = ("AVX512F", "AVX2", "FMA3", "SSE42", "ASIMD")
 
 
@@ -26,6 +26,11 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine()
+
+
+def host_cpus() -> int:
+    """The CPUs this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def numpy_simd() -> dict[str, bool]:
@@ -42,11 +47,10 @@ def machine() -> dict:
     import mujoco
     import torch
 
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     return {
         "cpu_model": cpu_model(),
         "arch": platform.machine(),
-        "cpus_available": cpus,
+        "cpus_available": host_cpus(),
         "numpy_simd": numpy_simd(),
         "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
         "versions": {"python": platform.python_version(), "numpy": np.__version__, "torch": torch.__version__,

@@ -16,11 +16,12 @@ rates from heartbeats), ``cpu`` (where the cores go, ``bracketed_ratio``),
 ``local-actor`` and ``echo`` processes, ``python -m sage.bench.system``),
 ``driver`` (``SystemBench``: the order of the phases) and ``cli`` (flags and
 the summary table)."""
+from sage.bench.machine import host_cpus
 from sage.bench.system.children import LocalQPActor, ack_key, echo_main, main
 from sage.bench.system.cli import cmd_bench_system, config_from_args, register, summary_table
 from sage.bench.system.config import QUICK, RATIO_TARGET, SystemBenchConfig
-from sage.bench.system.cpu import (actor_step_cost, bracketed_ratio, cpu_budget, cpu_ratio, host_cpus,
-                                   median_cost, process_cpu_s)
+from sage.bench.system.cpu import (actor_step_cost, bracketed_ratio, cpu_budget, cpu_ratio, median_cost,
+                                   process_cpu_s)
 from sage.bench.system.driver import SystemBench
 from sage.bench.system.meter import Repeater, StepMeter, quantiles_ms
 

@@ -7,11 +7,6 @@ import os
 import numpy as np
 
 
-def host_cpus() -> int:
-    """The CPUs this process may run on."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-
-
 def process_cpu_s(pid: int) -> float | None:
     """User + system CPU seconds of a live process, all its threads (Linux
     ``/proc/<pid>/stat``, clock-tick resolution); None where unreadable."""

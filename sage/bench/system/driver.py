@@ -16,10 +16,9 @@ from pathlib import Path
 from common.transport import Bus
 from deploy.supervised_run import router_spec, service_specs
 from deploy.supervisor import ServiceSpec, free_tcp_port
-from sage.bench.machine import machine
+from sage.bench.machine import host_cpus, machine
 from sage.bench.system import actor_ratio, param_broadcast, shield_rtt
 from sage.bench.system.config import RATIO_TARGET
-from sage.bench.system.cpu import host_cpus
 from sage.bench.system.harness import Harness
 from sage.bench.system.router import router_rates
 from sage.bench.system.shards import shards_phase

@@ -23,7 +23,8 @@ from common import keys
 from common.transport import Bus
 from deploy.supervised_run import router_spec, service_specs
 from deploy.supervisor import free_tcp_port
-from sage.bench.system.cpu import bracketed_ratio, cpu_budget, host_cpus
+from sage.bench.machine import host_cpus
+from sage.bench.system.cpu import bracketed_ratio, cpu_budget
 from sage.bench.system.meter import StepMeter
 from services.actor.service import ActorService
 from services.launcher import ServiceThreads
