@@ -5,7 +5,9 @@ also counts the time the learner waited for a core."""
 from __future__ import annotations
 
 import copy
+import cProfile
 import json
+import pstats
 import statistics
 import time
 
@@ -31,11 +33,12 @@ def default_obs_dim() -> tuple[int, str]:
 
 def bench_learner(T: int = 64, K: int = 32, obs_dim: int | None = None, rows: int = 34,
                   repeats: int = 3, methods=BENCH_METHODS, threads: int = 1, seed: int = 0,
-                  progress: float = 0.5) -> dict:
+                  progress: float = 0.5, profile: bool = False) -> dict:
     """Median thread CPU and wall seconds per ``update`` (after one warm-up
     update) for each method, their ratios to happo and samples per second. Every update
     (the warm-up and each timed one) starts from the method's state that collected the
-    batch."""
+    batch. ``profile``: one more update per method under cProfile, untimed, its time
+    split by kind (``update_profile``)."""
     if T < 1 or K < 1 or repeats < 1 or rows < 1:
         raise ValueError("bench learner: T, K, rows and repeats must be >= 1")
     if "happo" not in methods:
@@ -72,7 +75,13 @@ def bench_learner(T: int = 64, K: int = 32, obs_dim: int | None = None, rows: in
     steps = cfg.epochs * minibatches                        # critic steps per update
     critic_step = critic_step_ab(learners["happo"][0], T * K // minibatches)
     update_cpu_s = {k: statistics.median(v) for k, v in cpu.items()}
-    return {
+    profiles = {}
+    for name, (method, batch, start) in learners.items() if profile else ():
+        method.load_state_dict(start)
+        profiler = cProfile.Profile()
+        profiler.runcall(method.update, batch, progress)
+        profiles[name] = update_profile(pstats.Stats(profiler).stats, T * K)
+    out = {
         "bench": "learner",
         "T": T, "K": K, "samples": T * K, "obs_dim": obs_dim, "obs_dim_source": source,
         "rows": rows, "epochs": cfg.epochs, "minibatches": cfg.minibatches,
@@ -94,6 +103,61 @@ def bench_learner(T: int = 64, K: int = 32, obs_dim: int | None = None, rows: in
         "critic_gemm_floor_us_per_sample": critic_step["gemms_us"] * steps / (T * K),
         "machine": machine(),
     }
+    if profile:
+        out["profile"] = profiles
+    return out
+
+
+# where an update's time goes, by kind: (kind, source file or None for C functions, names or None for all)
+PROFILE_KINDS = (
+    ("tree kernels", "common/policy/tree_grad_kernels.py", None),
+    ("SAIL kernels", "common/policy/sail_kernels.py", None),
+    ("chain kernels", "common/algos/surrogate_kernels.py", None),
+    ("QP solver", "common/shield/qp_solver.py", None),
+    ("matrix products", None, ("mm", "addmm", "bmm", "matmul")),
+    ("critic tanh", "common/algos/critic.py", ("_tanh_",)),
+    ("critic tanh", None, ("tanh_backward",)),
+    ("gather", None, ("index_select",)),
+)
+
+
+def _c_function_name(label: str) -> str:
+    """``<method 'mm' of 'torch._C.TensorBase' objects>`` -> ``mm``;
+    ``<built-in method torch.addmm>`` -> ``addmm``."""
+    if label.startswith("<method '"):
+        return label.split("'")[1]
+    return label.rstrip(">").split(" ")[-1].rsplit(".", 1)[-1]
+
+
+def profile_kind(file: str, name: str) -> str:
+    """The kind of a cProfile entry (its ``file`` and function ``name``): one of
+    ``PROFILE_KINDS``'s, else "other torch and numpy calls" for a C function (cProfile's
+    file "~") and "Python" for the rest."""
+    c_function = file == "~"
+    short = _c_function_name(name) if c_function else name
+    for kind, source, names in PROFILE_KINDS:
+        if (source is None) == c_function and (source is None or file.replace("\\", "/").endswith(source)) \
+                and (names is None or short in names):
+            return kind
+    return "other torch and numpy calls" if c_function else "Python"
+
+
+def update_profile(stats: dict, samples: int) -> dict:
+    """One profiled update's own time (``pstats.Stats.stats``: (file, line, name) ->
+    (primitive calls, calls, own time, cumulative, callers)) split by ``profile_kind``:
+    microseconds per sample, each kind's share, and how many torch functions it called.
+    cProfile charges its own overhead per call, which weighs most on the Python rows."""
+    own: dict[str, float] = {}
+    torch_calls = 0
+    for (file, _line, name), (_cc, calls, tottime, _ct, _callers) in stats.items():
+        kind = profile_kind(file, name)
+        own[kind] = own.get(kind, 0.0) + tottime
+        if file == "~" and "torch" in name:
+            torch_calls += calls
+    total = sum(own.values())
+    return {"us_per_sample": 1e6 * total / samples,
+            "share": {k: v / total for k, v in sorted(own.items(), key=lambda kv: -kv[1])} if total else {},
+            "torch_calls": torch_calls}
 
 
 def critic_step_ab(method, minibatch: int, blocks: int = 20, steps: int = 10) -> dict:
@@ -184,12 +248,14 @@ def register(commands, bench) -> None:
     p.add_argument("--repeats", type=positive_int, default=3, help="timed updates per method (median)")
     p.add_argument("--threads", type=positive_int, default=1, help="torch intra-op threads")
     p.add_argument("--seed", type=nonneg_int, default=0)
+    p.add_argument("--profile", action="store_true",
+                   help="also one update per method under cProfile, its time split by kind")
     p.set_defaults(func=_bench_handler)
 
 
 def _bench_handler(args) -> int:
     out = bench_learner(T=args.T, K=args.K, obs_dim=args.obs_dim, rows=args.rows,
-                        repeats=args.repeats, threads=args.threads, seed=args.seed)
+                        repeats=args.repeats, threads=args.threads, seed=args.seed, profile=args.profile)
     if args.json:
         print(json.dumps(out, indent=2))
     else:
@@ -206,6 +272,10 @@ def _bench_handler(args) -> int:
               f"autograd {cs['autograd_us']:.0f} us, ratio {cs['written_over_autograd']:.2f}; its matrix products "
               f"alone {cs['gemms_us']:.0f} us (written-out / them {cs['written_over_gemms']:.2f}; medians of "
               f"{cs['blocks']} blocks): the update's critic floor {out['critic_gemm_floor_us_per_sample']:.1f} us/sample")
+        for name, prof in out.get("profile", {}).items():
+            shares = ", ".join(f"{k} {100 * v:.0f}%" for k, v in prof["share"].items())
+            print(f"  profiled {name}: {prof['us_per_sample']:.0f} us/sample under cProfile, {prof['torch_calls']} "
+                  f"torch calls; {shares}")
         m = out["machine"]
         print(f"  machine: {m['cpu_model']}, {m['cpus_available']} CPUs, torch {m['torch_cpu_capability']}")
     return 0
