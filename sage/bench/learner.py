@@ -1,7 +1,8 @@
 """`sage bench learner`: thread CPU time (and wall time) of one learner update
 per method on the same synthetic batch, as ratios to HAPPO (same run, same
 machine). Thread CPU time is the figure of merit: on a loaded machine wall time
-also counts the time the learner waited for a core."""
+also counts the time the learner waited for a core. ``--profile`` adds where one
+update's time goes, by kind (``update_profile``)."""
 from __future__ import annotations
 
 import copy
@@ -75,12 +76,6 @@ def bench_learner(T: int = 64, K: int = 32, obs_dim: int | None = None, rows: in
     steps = cfg.epochs * minibatches                        # critic steps per update
     critic_step = critic_step_ab(learners["happo"][0], T * K // minibatches)
     update_cpu_s = {k: statistics.median(v) for k, v in cpu.items()}
-    profiles = {}
-    for name, (method, batch, start) in learners.items() if profile else ():
-        method.load_state_dict(start)
-        profiler = cProfile.Profile()
-        profiler.runcall(method.update, batch, progress)
-        profiles[name] = update_profile(pstats.Stats(profiler).stats, T * K)
     out = {
         "bench": "learner",
         "T": T, "K": K, "samples": T * K, "obs_dim": obs_dim, "obs_dim_source": source,
@@ -104,8 +99,18 @@ def bench_learner(T: int = 64, K: int = 32, obs_dim: int | None = None, rows: in
         "machine": machine(),
     }
     if profile:
-        out["profile"] = profiles
+        out["profile"] = {name: profiled_update(method, batch, start, progress)
+                          for name, (method, batch, start) in learners.items()}
     return out
+
+
+def profiled_update(method, batch, start, progress: float) -> dict:
+    """One update of ``method`` from ``start`` (its state when it collected ``batch``) under
+    cProfile: ``update_profile`` of it."""
+    method.load_state_dict(start)
+    profiler = cProfile.Profile()
+    profiler.runcall(method.update, batch, progress)
+    return update_profile(pstats.Stats(profiler).stats, batch["reward"].size)
 
 
 # where an update's time goes, by kind: (kind, source file or None for C functions, names or None for all)
